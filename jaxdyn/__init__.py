@@ -1,0 +1,1 @@
+"""jaxdyn: differentiable rigid-body dynamics in pure JAX."""
