@@ -1,0 +1,60 @@
+"""The body protocol: kinematics and mass properties, state layout, invariants, events."""
+
+import abc
+from collections.abc import Callable, Mapping
+from typing import Any, ClassVar
+
+import equinox as eqx
+from jaxtyping import Array
+
+from ._custom_types import Scalar, State
+from ._validation import Check
+
+
+class AbstractBody(eqx.Module):
+    """A body: owns its state variables, mass properties and equations of motion.
+
+    Concrete bodies declare their parameters (array leaves, differentiable and vmappable) in
+    `parameter_names`, build their part of the state in `initial_state`, and assemble their
+    equations of motion from the loads contributed by the scene's effects in `derivative`.
+    """
+
+    kind: ClassVar[str]
+    """Name of the body type, as used in scene files (`"rigid-body"`, `"falling-rod"`)."""
+    parameter_names: ClassVar[tuple[str, ...]]
+    """Fields that are physical parameters."""
+    invariant_names: ClassVar[tuple[str, ...]]
+    """Quantities conserved by the body's own dynamics (before effects are added)."""
+
+    @abc.abstractmethod
+    def initial_state(self, attitude: bool, **values: Any) -> State:
+        """The body's part of the state from user-facing values (defaults where sensible)."""
+
+    @abc.abstractmethod
+    def derivative(self, t: Scalar, y: State, effects: tuple, attitude: bool) -> State:
+        """Time derivative of the body's state, including the loads of `effects`."""
+
+    @abc.abstractmethod
+    def outputs(self, t: Scalar, y: State, effects: tuple, attitude: bool) -> dict[str, Array]:
+        """Derived outputs at one instant (energies, forces, positions...)."""
+
+    @abc.abstractmethod
+    def invariants(self, t: Scalar, y: State, effects: tuple, attitude: bool) -> dict[str, Array]:
+        """Quantities that are conserved when every effect conserves them."""
+
+    @abc.abstractmethod
+    def checks(self) -> list[Check]:
+        """Validity conditions on the parameters."""
+
+    def events(self) -> Mapping[str, Callable[[Scalar, State], Scalar]]:
+        """Terminating events: name -> function of `(t, y)` whose sign change ends the run."""
+        return {}
+
+    def report(self, ts, ys: State, t_final, y_final: State, event: Mapping) -> dict[str, Any]:
+        """Body-specific summary of a run (plain Python values, JSON-ready)."""
+        return {}
+
+    def __check_init__(self):
+        from ._validation import raise_if_violated
+
+        raise_if_violated(self.checks())

@@ -1,0 +1,70 @@
+"""The effect protocol: forces, torques and extra state that a scene may call for."""
+
+from typing import Any, ClassVar
+
+import equinox as eqx
+from jaxtyping import Array
+
+from ._custom_types import Scalar, State
+from ._validation import Check
+
+
+class AbstractEffect(eqx.Module):
+    """An effect acting on a rigid body.
+
+    An effect may contribute any of: an external torque (`torque`), internal angular momentum
+    stored in a device (`momentum`) and its rate (`momentum_rate`), its own state variables
+    (`initial_state`/`state_derivative`), and an energy term (`energy`). Methods that do not apply
+    return `None`, so nothing is traced for them: a scene pays only for the effects it declares.
+
+    The rigid body assembles Euler's equations as
+    $I \\dot\\omega = (I\\omega + \\textstyle\\sum h) \\times \\omega - \\sum \\dot h + \\sum \\tau$.
+    """
+
+    kind: ClassVar[str]
+    """Name used in scene files and in parameter names (`"rotor"`, `"torque"`...)."""
+    parameter_names: ClassVar[tuple[str, ...]] = ()
+    needs_attitude: ClassVar[bool] = False
+    """Whether the effect needs the attitude (and so makes the scene integrate it)."""
+    conserves: ClassVar[frozenset[str]] = frozenset()
+    """Body invariants that stay conserved when this effect acts (`"energy"`, `"momentum"`)."""
+
+    def checks(self) -> list[Check]:
+        return []
+
+    def constructor_args(self) -> dict[str, Any]:
+        """Arguments that rebuild this effect: parameters (by `parameter_names`) and options."""
+        return {name: getattr(self, name) for name in self.parameter_names}
+
+    def parameters(self) -> dict[str, Any]:
+        args = self.constructor_args()
+        return {name: args[name] for name in self.parameter_names}
+
+    def __check_init__(self):
+        from ._validation import raise_if_violated
+
+        raise_if_violated(self.checks())
+
+    def initial_state(self, **values: Any) -> State:
+        if values:
+            from ._validation import ParameterError
+
+            raise ParameterError(
+                f"{self.kind} has no state: unexpected initial values {sorted(values)}"
+            )
+        return {}
+
+    def state_derivative(self, t: Scalar, y: State, own: State, body) -> State:
+        return {}
+
+    def torque(self, t: Scalar, y: State, own: State, body) -> Array | None:
+        return None
+
+    def momentum(self, t: Scalar, y: State, own: State, body) -> Array | None:
+        return None
+
+    def momentum_rate(self, t: Scalar, y: State, own: State, body) -> Array | None:
+        return None
+
+    def energy(self, t: Scalar, y: State, own: State, body) -> Array | None:
+        return None

@@ -1,0 +1,3 @@
+from ._gravity_gradient import GravityGradient as GravityGradient
+from ._rotor import Rotor as Rotor
+from ._torque import ExternalTorque as ExternalTorque

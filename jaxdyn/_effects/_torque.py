@@ -1,0 +1,55 @@
+from collections.abc import Callable
+from typing import ClassVar, Literal
+
+import equinox as eqx
+from jaxtyping import Array, ArrayLike, Float
+
+from .._effect import AbstractEffect
+from .._rotations import quat_conjugate, quat_rotate
+from .._validation import Check, ParameterError, as_float_array, finite_check
+
+
+class ExternalTorque(AbstractEffect):
+    """An external torque, constant or a function of time, in the body or the inertial frame.
+
+    **Arguments:**
+
+    - `torque`: three components (N m), or a function `t -> torque` (an `eqx.Module` if its
+      parameters should be differentiable).
+    - `frame`: `"body"` (components in the body frame) or `"inertial"` (components in the
+      inertial frame; the scene then integrates attitude).
+    """
+
+    torque_value: Float[Array, "3"] | Callable
+    frame: Literal["body", "inertial"] = eqx.field(static=True)
+
+    kind: ClassVar[str] = "torque"
+    parameter_names: ClassVar[tuple[str, ...]] = ("torque",)
+
+    def __init__(self, torque: Float[ArrayLike, "3"] | Callable, frame: str = "body"):
+        if frame not in ("body", "inertial"):
+            raise ParameterError(f"torque.frame={frame!r}: allowed are 'body', 'inertial'")
+        self.frame = frame  # type: ignore[assignment]
+        self.torque_value = torque if callable(torque) else as_float_array(
+            "torque.torque", torque, (3,)
+        )
+
+    @property
+    def needs_attitude(self) -> bool:  # type: ignore[override]
+        return self.frame == "inertial"
+
+    def constructor_args(self):
+        return {"torque": self.torque_value, "frame": self.frame}
+
+    def checks(self) -> list[Check]:
+        if callable(self.torque_value):
+            return []
+        return [finite_check("torque.torque", self.torque_value)]
+
+    def torque(self, t, y, own, body) -> Array:
+        dtype = y["omega"].dtype
+        tau = self.torque_value(t) if callable(self.torque_value) else self.torque_value
+        tau = tau.astype(dtype)
+        if self.frame == "inertial":
+            tau = quat_rotate(quat_conjugate(y["quaternion"]), tau)
+        return tau

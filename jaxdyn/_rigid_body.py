@@ -1,0 +1,182 @@
+"""A rigid body: Euler's equations with optional attitude (quaternion) kinematics."""
+
+from typing import Any, ClassVar
+
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float
+
+from ._body import AbstractBody
+from ._custom_types import Scalar, State
+from ._inertia import invert3, moments_checks, principal_axes, tensor_checks
+from ._rotations import quat_derivative, quat_rotate, safe_norm
+from ._validation import Check, ParameterError, as_float_array
+
+
+def _sum(terms: list) -> Array | None:
+    terms = [x for x in terms if x is not None]
+    if not terms:
+        return None
+    total = terms[0]
+    for x in terms[1:]:
+        total = total + x
+    return total
+
+
+class RigidBody(AbstractBody):
+    """A rigid body described by its inertia about the centre of mass.
+
+    **Arguments:**
+
+    - `inertia`: either three principal moments (the body frame is then the principal frame, and
+      Euler's equations take their cheapest form), or a full symmetric 3x3 tensor with products of
+      inertia in the body frame (principal axes are found by `principal_axes`). Each principal
+      moment must be positive and no larger than the sum of the other two.
+
+    State: `omega` (body rates in the body frame, rad/s) and, when the scene integrates attitude,
+    `quaternion` (scalar first, mapping body to inertial components).
+    """
+
+    inertia: Float[Array, "3"] | Float[Array, "3 3"]
+
+    kind: ClassVar[str] = "rigid-body"
+    parameter_names: ClassVar[tuple[str, ...]] = ("inertia",)
+    invariant_names: ClassVar[tuple[str, ...]] = ("energy", "momentum")
+
+    def __init__(self, inertia: Float[ArrayLike, "3"] | Float[ArrayLike, "3 3"]):
+        arr = as_float_array("inertia", inertia)
+        if arr.shape not in ((3,), (3, 3)):
+            raise ParameterError(
+                f"inertia has shape {arr.shape}: expected 3 principal moments or a 3x3 tensor"
+            )
+        self.inertia = arr
+
+    # -- mass properties ------------------------------------------------------------------------
+
+    @property
+    def is_principal(self) -> bool:
+        """Whether `inertia` holds principal moments (the body frame is a principal frame)."""
+        return self.inertia.ndim == 1
+
+    @property
+    def tensor(self) -> Float[Array, "3 3"]:
+        return jnp.diag(self.inertia) if self.is_principal else self.inertia
+
+    @property
+    def principal_moments(self) -> Float[Array, "3"]:
+        """Principal moments; as given for principal inertia, ascending for a full tensor."""
+        return self.inertia if self.is_principal else principal_axes(self.inertia)[0]
+
+    @property
+    def principal_axes(self) -> Float[Array, "3 3"]:
+        """Columns are the principal axes in the body frame (identity for principal inertia)."""
+        if self.is_principal:
+            return jnp.eye(3, dtype=self.inertia.dtype)
+        return principal_axes(self.inertia)[1]
+
+    def checks(self) -> list[Check]:
+        if self.is_principal:
+            return moments_checks("inertia", self.inertia)
+        return tensor_checks("inertia", self.inertia)
+
+    def body_momentum(self, omega: Float[Array, "3"]) -> Float[Array, "3"]:
+        """`I omega`, the body's own angular momentum in the body frame."""
+        return self.inertia * omega if self.is_principal else self.inertia @ omega
+
+    def _solve(self, rhs: Float[Array, "3"]) -> Float[Array, "3"]:
+        return rhs / self.inertia if self.is_principal else invert3(self.inertia) @ rhs
+
+    # -- protocol -------------------------------------------------------------------------------
+
+    def initial_state(
+        self, attitude: bool, omega: Any = None, quaternion: Any = None, **unknown: Any
+    ) -> State:
+        if unknown:
+            raise ParameterError(
+                f"unknown state variables {sorted(unknown)} for a rigid body: "
+                "allowed are omega, quaternion"
+            )
+        if omega is None:
+            raise ParameterError("omega is required: three body rates in rad/s")
+        dtype = self.inertia.dtype
+        y = {"omega": as_float_array("omega", omega, (3,), dtype)}
+        if attitude:
+            q = jnp.array([1.0, 0.0, 0.0, 0.0], dtype) if quaternion is None else quaternion
+            q = as_float_array("quaternion", q, (4,), dtype)
+            y["quaternion"] = q / jnp.linalg.norm(q)
+        elif quaternion is not None:
+            raise ParameterError(
+                "quaternion given, but the scene does not integrate attitude: "
+                "use Scene(..., attitude=True) or an effect that needs attitude"
+            )
+        return y
+
+    def _internal(self, t, y, effects) -> tuple[Array | None, Array | None, Array | None]:
+        h = _sum([e.momentum(t, y, own, self) for e, own in effects])
+        hdot = _sum([e.momentum_rate(t, y, own, self) for e, own in effects])
+        tau = _sum([e.torque(t, y, own, self) for e, own in effects])
+        return h, hdot, tau
+
+    def derivative(self, t: Scalar, y: State, effects: tuple, attitude: bool) -> State:
+        omega = y["omega"]
+        h_internal, h_rate, torque = self._internal(t, y, effects)
+        h = self.body_momentum(omega)
+        if h_internal is not None:
+            h = h + h_internal
+        rhs = jnp.cross(h, omega)
+        if torque is not None:
+            rhs = rhs + torque
+        if h_rate is not None:
+            rhs = rhs - h_rate
+        dy = {"omega": self._solve(rhs)}
+        if attitude:
+            dy["quaternion"] = quat_derivative(y["quaternion"], omega)
+        return dy
+
+    def _momentum_vector(self, t, y, effects) -> Float[Array, "3"]:
+        h = self.body_momentum(y["omega"])
+        h_internal = _sum([e.momentum(t, y, own, self) for e, own in effects])
+        return h if h_internal is None else h + h_internal
+
+    def kinetic_energy(self, omega: Float[Array, "3"]) -> Scalar:
+        return 0.5 * jnp.dot(omega, self.body_momentum(omega))
+
+    def invariants(self, t: Scalar, y: State, effects: tuple, attitude: bool) -> dict[str, Array]:
+        energy = _sum(
+            [self.kinetic_energy(y["omega"])] + [e.energy(t, y, own, self) for e, own in effects]
+        )
+        h = self._momentum_vector(t, y, effects)
+        out = {"energy": energy, "momentum": safe_norm(h)}
+        if attitude:
+            out["momentum_inertial"] = quat_rotate(y["quaternion"], h)
+        return out
+
+    def outputs(self, t: Scalar, y: State, effects: tuple, attitude: bool) -> dict[str, Array]:
+        out = {
+            "omega": y["omega"],
+            "angular_momentum": self._momentum_vector(t, y, effects),
+            "kinetic_energy": self.kinetic_energy(y["omega"]),
+        }
+        if attitude:
+            out["quaternion"] = y["quaternion"]
+            out["quaternion_norm"] = jnp.linalg.norm(y["quaternion"])
+        return out
+
+    def report(self, ts, ys, t_final, y_final, event) -> dict[str, Any]:
+        return {"omega_final": [float(x) for x in y_final["omega"]]}
+
+    # -- analytic companion ---------------------------------------------------------------------
+
+    def exact_omega(self, omega0: Float[ArrayLike, "3"], t: Float[ArrayLike, "..."]):
+        """Body rates of the torque-free body at times `t`, from the Jacobi-elliptic solution.
+
+        Works for a full tensor too: the rates are moved to the principal frame, propagated in
+        closed form, and moved back. See [`jaxdyn.torque_free_omega`][].
+        """
+        from ._free_body import torque_free_omega
+
+        omega0 = jnp.asarray(omega0, self.inertia.dtype)
+        if self.is_principal:
+            return torque_free_omega(self.inertia, omega0, t)
+        moments, axes = principal_axes(self.inertia)
+        w = torque_free_omega(moments, axes.T @ omega0, t)
+        return w @ axes.T

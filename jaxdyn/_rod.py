@@ -1,0 +1,250 @@
+"""The falling rod: a slender rod standing on frictionless ice slides and falls.
+
+With no horizontal force the centre of mass (CM) moves only vertically. Angular momentum about the
+CM (`H_dot = L_c`), the super-particle theorem (`F = m a_c`) and the constraint
+`y_c = (L/2) cos(theta)` give (see `physics.md`, section 1)
+
+$$\\ddot\\theta = \\frac{3 \\sin\\theta\\,(2 g - L \\dot\\theta^2 \\cos\\theta)}{L (1 + 3\\sin^2\\theta)},
+\\qquad N = m g - m \\tfrac{L}{2}(\\dot\\theta^2\\cos\\theta + \\ddot\\theta \\sin\\theta).$$
+"""
+
+from typing import Any, ClassVar
+
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Float
+
+from ._body import AbstractBody
+from ._custom_types import Scalar, State
+from ._validation import Check, ParameterError, as_float_array, positive_check
+
+
+# Gauss-Legendre nodes for the fall-time quadrature (three panels of 32 nodes; see `fall_time`).
+_GL_X, _GL_W = np.polynomial.legendre.leggauss(32)
+
+
+def _gauss_legendre(f, a, b):
+    x = jnp.asarray(_GL_X, a.dtype)
+    w = jnp.asarray(_GL_W, a.dtype)
+    half = 0.5 * (b - a)
+    return half * jnp.sum(w * f(0.5 * (a + b) + half * x))
+
+
+class FallingRod(AbstractBody):
+    """A slender rod on a frictionless floor, its lower tip on the floor.
+
+    **Arguments:**
+
+    - `length`: rod length `L` (m).
+    - `mass`: rod mass `m` (kg). Enters only the normal force and the energies.
+    - `g`: gravitational acceleration (m/s^2).
+
+    State: `theta` (angle from the vertical, rad; the top moves towards `+x` for `theta > 0`) and
+    `theta_dot` (rad/s). The run ends at the event `"flat"` (the CM reaches the floor,
+    `theta = +-pi/2`), located by root finding.
+    """
+
+    length: Float[Array, ""]
+    mass: Float[Array, ""]
+    g: Float[Array, ""]
+
+    kind: ClassVar[str] = "falling-rod"
+    parameter_names: ClassVar[tuple[str, ...]] = ("length", "mass", "g")
+    invariant_names: ClassVar[tuple[str, ...]] = ("energy",)
+
+    def __init__(self, length: ArrayLike = 1.0, mass: ArrayLike = 1.0, g: ArrayLike = 9.81):
+        self.length = as_float_array("length", length, ())
+        dtype = self.length.dtype
+        self.mass = as_float_array("mass", mass, (), dtype)
+        self.g = as_float_array("g", g, (), dtype)
+
+    def checks(self) -> list[Check]:
+        return [
+            positive_check("length", self.length),
+            positive_check("mass", self.mass),
+            positive_check("g", self.g),
+        ]
+
+    # -- protocol -------------------------------------------------------------------------------
+
+    def initial_state(
+        self, attitude: bool, theta: Any = None, theta_dot: Any = 0.0, **unknown: Any
+    ) -> State:
+        if unknown:
+            raise ParameterError(
+                f"unknown state variables {sorted(unknown)} for a falling rod: "
+                "allowed are theta, theta_dot"
+            )
+        if attitude:
+            raise ParameterError(
+                "attitude=True: a falling rod has no 3-D attitude (its state is theta, theta_dot)"
+            )
+        if theta is None:
+            raise ParameterError("theta is required: the angle from the vertical in rad")
+        dtype = self.length.dtype
+        theta = as_float_array("theta", theta, (), dtype)
+        theta_dot = as_float_array("theta_dot", theta_dot, (), dtype)
+        from ._validation import raise_if_violated
+
+        raise_if_violated(
+            [
+                ("theta", theta, ~(jnp.abs(theta) <= jnp.pi / 2),
+                 "must be finite and within [-pi/2, pi/2] (the rod cannot start below the floor)"),
+                ("theta_dot", theta_dot, ~jnp.isfinite(theta_dot), "must be finite"),
+            ]
+        )
+        return {"theta": theta, "theta_dot": theta_dot}
+
+    def angular_acceleration(self, theta, theta_dot):
+        """`theta_ddot` from the equation of motion."""
+        s, c = jnp.sin(theta), jnp.cos(theta)
+        L, g = self.length, self.g
+        return 3 * s * (2 * g - L * theta_dot**2 * c) / (L * (1 + 3 * s**2))
+
+    def derivative(self, t: Scalar, y: State, effects: tuple, attitude: bool) -> State:
+        theta, theta_dot = y["theta"], y["theta_dot"]
+        return {"theta": theta_dot, "theta_dot": self.angular_acceleration(theta, theta_dot)}
+
+    def _energies(self, theta, theta_dot):
+        m, L, g = self.mass, self.length, self.g
+        kinetic = m * L**2 / 24 * (1 + 3 * jnp.sin(theta) ** 2) * theta_dot**2
+        potential = m * g * L / 2 * jnp.cos(theta)
+        return kinetic, potential
+
+    def invariants(self, t: Scalar, y: State, effects: tuple, attitude: bool) -> dict[str, Array]:
+        kinetic, potential = self._energies(y["theta"], y["theta_dot"])
+        return {"energy": kinetic + potential}
+
+    def outputs(self, t: Scalar, y: State, effects: tuple, attitude: bool) -> dict[str, Array]:
+        theta, theta_dot = y["theta"], y["theta_dot"]
+        m, L, g = self.mass, self.length, self.g
+        s, c = jnp.sin(theta), jnp.cos(theta)
+        theta_ddot = self.angular_acceleration(theta, theta_dot)
+        normal = m * g - m * L / 2 * (theta_dot**2 * c + theta_ddot * s)
+        kinetic, potential = self._energies(theta, theta_dot)
+        return {
+            "theta": theta,
+            "theta_dot": theta_dot,
+            "theta_ddot": theta_ddot,
+            "normal_force": normal,
+            "normal_force_over_weight": normal / (m * g),
+            "cm_height": L / 2 * c,
+            "cm_x": jnp.zeros_like(theta),
+            "tip_x": -L / 2 * s,
+            "top_x": L / 2 * s,
+            "top_height": L * c,
+            "kinetic_energy": kinetic,
+            "potential_energy": potential,
+        }
+
+    def events(self):
+        # The CM height (L/2) cos(theta) changes sign as the rod lies flat on either side.
+        return {"flat": lambda t, y: jnp.cos(y["theta"])}
+
+    def report(self, ts, ys, t_final, y_final, event) -> dict[str, Any]:
+        flat = bool(event.get("flat", False))
+        valid = np.isfinite(np.asarray(ts)) & (np.asarray(ts) <= float(t_final))
+        out = self.outputs(ts, ys, (), False)
+        n_over_w = np.asarray(out["normal_force_over_weight"])[valid]
+        theta0 = ys["theta"][0]
+        theta_dot0 = ys["theta_dot"][0]
+        return {
+            "impact_time": float(t_final) if flat else None,
+            "impact_rate": float(y_final["theta_dot"]) if flat else None,
+            "min_normal_force_over_weight": float(np.min(n_over_w)),
+            "reference": {
+                "impact_time": _none_if_inf(self.fall_time(theta0, theta_dot0)),
+                "impact_rate": float(
+                    jnp.sign(y_final["theta"]) * self.rate(jnp.pi / 2, theta0, theta_dot0)
+                ),
+            },
+        }
+
+    # -- analytic companions --------------------------------------------------------------------
+
+    def rate(self, theta: ArrayLike, theta0: ArrayLike, theta_dot0: ArrayLike = 0.0) -> Array:
+        """`|theta_dot|` at angle `theta` from the energy integral, starting at
+        `(theta0, theta_dot0)`.
+
+        $$\\dot\\theta^2 (1 + 3\\sin^2\\theta) = \\dot\\theta_0^2 (1 + 3\\sin^2\\theta_0)
+        + \\frac{24 g}{L} \\sin\\frac{\\theta - \\theta_0}{2} \\sin\\frac{\\theta + \\theta_0}{2},$$
+
+        the product form of `12 (cos(theta0) - cos(theta)) / 2`, which keeps every digit when
+        `theta0` is tiny. Returns 0 where the energy does not reach `theta`.
+        """
+        dtype = self.length.dtype
+        theta, theta0, theta_dot0 = (jnp.asarray(x, dtype) for x in (theta, theta0, theta_dot0))
+        L, g = self.length, self.g
+        num = theta_dot0**2 * (1 + 3 * jnp.sin(theta0) ** 2) + 24 * g / L * jnp.sin(
+            0.5 * (theta - theta0)
+        ) * jnp.sin(0.5 * (theta + theta0))
+        num = jnp.maximum(num, 0.0)
+        safe = jnp.where(num > 0, num, 1.0)
+        return jnp.where(num > 0, jnp.sqrt(safe / (1 + 3 * jnp.sin(theta) ** 2)), 0.0)
+
+    def fall_time(self, theta0: ArrayLike, theta_dot0: ArrayLike = 0.0) -> Array:
+        """Time for the rod to lie flat, by quadrature of the energy integral.
+
+        With `s = sin(theta/2)` the energy integral reads
+        `theta_dot^2 = (24 g / L) (s^2 - s_*^2) / (1 + 3 sin^2 theta)` with a constant `s_*^2`
+        (positive: the rod turns back before upright; negative: it passes over the top). The
+        substitution `v = log(s + sqrt(s^2 - s_*^2))` removes the `1/sqrt` singularity at a turning
+        point and the `log(1/theta0)` growth near upright, leaving the smooth integrand
+        `dt/dv = sqrt((1 + 3 sin^2 theta) L / (6 g)) / cos(theta/2)`, integrated by composite
+        Gauss-Legendre. Returns `inf` when the rod never falls (at rest exactly upright, or with
+        exactly the energy to come to rest upright).
+
+        A negative `theta_dot0` (towards upright) is handled: the rod rises, turns back or passes
+        over, and falls on the side its energy dictates.
+        """
+        dtype = self.length.dtype
+        theta0, theta_dot0 = (jnp.asarray(x, dtype) for x in (theta0, theta_dot0))
+        L, g = self.length, self.g
+        # Mirror so that theta0 >= 0; then `rising` means moving towards upright.
+        sign = jnp.where(theta0 < 0, -1.0, 1.0).astype(dtype)
+        theta0, theta_dot0 = sign * theta0, sign * theta_dot0
+        rising = theta_dot0 < 0
+        s0 = jnp.sin(0.5 * theta0)
+        sb = jnp.sin(jnp.asarray(jnp.pi / 4, dtype))
+        c = jnp.abs(theta_dot0) * jnp.sqrt((1 + 3 * jnp.sin(theta0) ** 2) * L / (24 * g))
+        s_star2 = s0**2 - c**2  # may be negative
+        r_b = jnp.sqrt(jnp.sin(0.5 * (jnp.pi / 2 - theta0)) * jnp.sin(0.5 * (jnp.pi / 2 + theta0))
+                       + c**2)
+        start = s0 + c
+        never = start <= 0  # at rest exactly upright
+        v0 = jnp.log(jnp.where(never, 1.0, start))
+        vb = jnp.log(sb + r_b)
+        low_ok = s_star2 != 0
+        v_low = 0.5 * jnp.log(jnp.where(low_ok, jnp.abs(s_star2), 1.0))
+
+        def integrand(v):
+            s = 0.5 * (jnp.exp(v) + s_star2 * jnp.exp(-v))
+            sin_theta = 2 * s * jnp.sqrt(1 - s**2)
+            return jnp.sqrt((1 + 3 * sin_theta**2) * L / (6 * g)) / jnp.sqrt(1 - s**2)
+
+        def integral(a, b):
+            # Panels split near the upper end, where the integrand varies; the long lower part
+            # (small angles) is nearly constant.
+            p1 = jnp.clip(b - 6.0, a, b)
+            p2 = jnp.clip(b - 1.5, a, b)
+            return (_gauss_legendre(integrand, a, p1) + _gauss_legendre(integrand, p1, p2)
+                    + _gauss_legendre(integrand, p2, b))
+
+        falling = integral(v0, vb)
+        back = jnp.where(rising & low_ok, integral(v_low, v0) + integral(v_low, vb), 0.0)
+        total = jnp.where(rising, back, falling)
+        diverges = never | (rising & ~low_ok)
+        return jnp.where(diverges, jnp.inf, total)
+
+    def normal_force_energy(self, theta: ArrayLike, theta0: ArrayLike,
+                            theta_dot0: ArrayLike = 0.0) -> Array:
+        """Normal force along the fall as a function of the angle, from the energy integral."""
+        theta = jnp.asarray(theta, self.length.dtype)
+        theta_dot = self.rate(theta, theta0, theta_dot0)
+        out = self.outputs(None, {"theta": theta, "theta_dot": theta_dot}, (), False)
+        return out["normal_force"]
+
+
+def _none_if_inf(x) -> float | None:
+    x = float(x)
+    return None if not np.isfinite(x) else x

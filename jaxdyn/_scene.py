@@ -1,0 +1,239 @@
+"""A scene: a body plus exactly the effects it calls for, behind one protocol."""
+
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array
+
+from ._body import AbstractBody
+from ._custom_types import Scalar, State
+from ._effect import AbstractEffect
+from ._validation import ParameterError
+
+
+class Scene(eqx.Module):
+    """A body plus the effects that the scene calls for.
+
+    The state layout and the vector field are assembled from exactly these parts: an effect that
+    is not declared is not traced, stored or integrated, and attitude is integrated only when an
+    effect needs it or `attitude=True` asks for it. Parameters are array leaves (so `jax.grad` and
+    `jax.vmap` work over them and changing a value does not recompile); which effects are present
+    is static structure.
+
+    Everything built on scenes (simulation, accuracy studies, identification, separatrices,
+    ensembles) uses only this protocol: `state`, `vector_field`, `invariants`, `conserved`,
+    `outputs`, `events`, `parameters`, `replace`, `check` and `report`.
+
+    **Arguments:**
+
+    - `body`: a [`jaxdyn.RigidBody`][] or a [`jaxdyn.FallingRod`][].
+    - `effects`: a tuple of effects ([`jaxdyn.Rotor`][], [`jaxdyn.ExternalTorque`][],
+      [`jaxdyn.GravityGradient`][]).
+    - `attitude`: integrate the attitude quaternion even if no effect needs it.
+    """
+
+    body: AbstractBody
+    effects: tuple[AbstractEffect, ...]
+    attitude: bool = eqx.field(static=True)
+    labels: tuple[str, ...] = eqx.field(static=True)
+
+    def __init__(
+        self, body: AbstractBody, effects: tuple[AbstractEffect, ...] | list = (), *,
+        attitude: bool = False,
+    ):
+        if not isinstance(body, AbstractBody):
+            raise ParameterError(
+                f"body={body!r}: expected a jaxdyn body (RigidBody or FallingRod)"
+            )
+        effects = tuple(effects)
+        labels = []
+        for e in effects:
+            if not isinstance(e, AbstractEffect):
+                raise ParameterError(f"effects contains {e!r}: expected jaxdyn effects")
+            if body.kind != "rigid-body":
+                raise ParameterError(
+                    f"effect {e.kind!r} cannot act on a {body.kind}: "
+                    "effects act on rigid bodies"
+                )
+            label = e.kind
+            k = 2
+            while label in labels:
+                label = f"{e.kind}{k}"
+                k += 1
+            labels.append(label)
+        needs = any(e.needs_attitude for e in effects)
+        if attitude and body.kind != "rigid-body":
+            raise ParameterError(f"attitude=True: a {body.kind} has no 3-D attitude")
+        self.body = body
+        self.effects = effects
+        self.attitude = bool(attitude or needs)
+        self.labels = tuple(labels)
+
+    # -- state ----------------------------------------------------------------------------------
+
+    def state(self, **values: Any) -> State:
+        """Build a state from named initial values.
+
+        Body values by name (`omega`, `quaternion` for a rigid body; `theta`, `theta_dot` for the
+        rod); an effect's own state as `"<label>.<name>"` (pass with `**{...}`).
+        """
+        body_values = {k: v for k, v in values.items() if "." not in k}
+        y = dict(self.body.initial_state(self.attitude, **body_values))
+        for label, e in zip(self.labels, self.effects):
+            prefix = label + "."
+            own = {k[len(prefix):]: v for k, v in values.items() if k.startswith(prefix)}
+            y.update({prefix + k: v for k, v in e.initial_state(**own).items()})
+        unknown = [k for k in values if "." in k and k.split(".")[0] not in self.labels]
+        if unknown:
+            raise ParameterError(
+                f"unknown state variables {unknown}: effects present are {list(self.labels)}"
+            )
+        return y
+
+    def state_shapes(self) -> dict[str, tuple[int, ...]]:
+        """Names and shapes of the state variables, as integrated."""
+        layout = jax.eval_shape(lambda: self._example_state())
+        return {k: v.shape for k, v in layout.items()}
+
+    def _example_state(self) -> State:
+        if self.body.kind == "rigid-body":
+            return self.state(omega=jnp.zeros(3))
+        return self.state(theta=0.0)
+
+    def check_state(self, y: Mapping[str, Any]) -> State:
+        """Check that `y` has exactly this scene's state variables, with the right shapes."""
+        if not isinstance(y, Mapping):
+            raise ParameterError(
+                f"y0 is a {type(y).__name__}: expected a state dict from scene.state(...)"
+            )
+        expected = self.state_shapes()
+        if set(y) != set(expected):
+            raise ParameterError(
+                f"y0 has variables {sorted(y)}: this scene integrates {sorted(expected)}"
+            )
+        out = {}
+        for k, shape in expected.items():
+            v = jnp.asarray(y[k])
+            if v.shape != shape:
+                raise ParameterError(f"y0[{k!r}] has shape {v.shape}: expected {shape}")
+            out[k] = v
+        return out
+
+    def _own(self, y: State) -> tuple:
+        pairs = []
+        for label, e in zip(self.labels, self.effects):
+            prefix = label + "."
+            pairs.append((e, {k[len(prefix):]: v for k, v in y.items() if k.startswith(prefix)}))
+        return tuple(pairs)
+
+    # -- dynamics -------------------------------------------------------------------------------
+
+    def vector_field(self, t: Scalar, y: State, args: Any = None) -> State:
+        """Time derivative of the state (diffrax signature `(t, y, args)`)."""
+        pairs = self._own(y)
+        dy = dict(self.body.derivative(t, y, pairs, self.attitude))
+        for label, (e, own) in zip(self.labels, pairs):
+            for k, v in e.state_derivative(t, y, own, self.body).items():
+                dy[f"{label}.{k}"] = v
+        return dy
+
+    def invariants(self, t: Scalar, y: State) -> dict[str, Array]:
+        """Energy and momentum-like quantities (conserved only if listed in `conserved`)."""
+        return self.body.invariants(t, y, self._own(y), self.attitude)
+
+    @property
+    def conserved(self) -> tuple[str, ...]:
+        """Invariants conserved by this scene: the body's, less those an effect breaks."""
+        names = []
+        for name in self.body.invariant_names:
+            if all(name in e.conserves for e in self.effects):
+                names.append(name)
+        if self.attitude and "momentum" in names:
+            names.append("momentum_inertial")
+        return tuple(names)
+
+    def outputs(self, t: Scalar, y: State) -> dict[str, Array]:
+        """Every derived output at one instant: the body's outputs and the invariants."""
+        out = dict(self.body.outputs(t, y, self._own(y), self.attitude))
+        out.update(self.invariants(t, y))
+        return out
+
+    def output_names(self) -> tuple[str, ...]:
+        y = self._example_state()
+        shapes = jax.eval_shape(lambda: self.outputs(jnp.zeros(()), y))
+        return tuple(shapes)
+
+    def events(self) -> dict[str, Callable[[Scalar, State], Scalar]]:
+        """Terminating events: name -> `f(t, y)`; the run ends where one changes sign."""
+        return dict(self.body.events())
+
+    # -- parameters -----------------------------------------------------------------------------
+
+    def parameters(self) -> dict[str, Any]:
+        """All physical parameters by name: body fields, then `"<label>.<name>"` for effects."""
+        params = {name: getattr(self.body, name) for name in self.body.parameter_names}
+        for label, e in zip(self.labels, self.effects):
+            params.update({f"{label}.{k}": v for k, v in e.parameters().items()})
+        return params
+
+    def replace(self, values: Mapping[str, Any] | None = None, /, **kwargs: Any) -> "Scene":
+        """A copy with some parameters changed (same structure, so no recompilation).
+
+        `scene.replace(inertia=I)`, or `scene.replace({"rotor.momentum": h})` for effects.
+        """
+        values = {**(values or {}), **kwargs}
+        allowed = self.parameters()
+        unknown = sorted(set(values) - set(allowed))
+        if unknown:
+            raise ParameterError(
+                f"unknown parameter(s) {unknown}: this scene has {sorted(allowed)}"
+            )
+        body_args = {n: getattr(self.body, n) for n in self.body.parameter_names}
+        body_args.update({k: v for k, v in values.items() if "." not in k})
+        body = type(self.body)(**body_args)
+        effects = []
+        for label, e in zip(self.labels, self.effects):
+            prefix = label + "."
+            new = {k[len(prefix):]: v for k, v in values.items() if k.startswith(prefix)}
+            effects.append(type(e)(**{**e.constructor_args(), **new}) if new else e)
+        return Scene(body, tuple(effects), attitude=self.attitude)
+
+    def check(self, y: State) -> State:
+        """Attach runtime checks of the parameters to the state `y` (returned unchanged).
+
+        Concrete values are checked when a body or effect is built; values known only inside
+        `jit`, `grad` or `vmap` are checked here with `eqx.error_if`, so that a simulation with an
+        invalid parameter fails with a message naming it instead of returning wrong numbers.
+        """
+        checks = list(self.body.checks())
+        for e in self.effects:
+            checks += e.checks()
+        if not checks:
+            return y
+        flags = jnp.stack([jnp.any(violated) for _, _, violated, _ in checks])
+        msgs = [f"invalid {field}: {allowed}" for field, _, _, allowed in checks]
+        return eqx.branched_error_if(y, jnp.any(flags), jnp.argmax(flags), msgs)
+
+    # -- reporting ------------------------------------------------------------------------------
+
+    def report(self, ts, ys: State, t_final, y_final: State, event: Mapping) -> dict[str, Any]:
+        """JSON-ready summary of a run: the body's own keys and the relative drift of each
+        conserved invariant over the saved samples."""
+        import numpy as np
+
+        out = dict(self.body.report(ts, ys, t_final, y_final, event))
+        valid = np.isfinite(np.asarray(ts))
+        inv = jax.vmap(self.invariants)(ts, ys)
+        for name in self.conserved:
+            if name == "momentum_inertial":
+                v = np.asarray(inv[name])[valid]
+                scale = np.linalg.norm(v[0])
+                err = np.max(np.linalg.norm(v - v[0], axis=-1)) / scale
+            else:
+                v = np.asarray(inv[name])[valid]
+                err = float(np.max(np.abs(v - v[0])) / np.abs(v[0]))
+            out[f"{name}_rel_error"] = float(err)
+        return out

@@ -1,0 +1,228 @@
+"""`simulate`: one entry point over `diffrax.diffeqsolve` for every scene."""
+
+from typing import Any
+
+import diffrax as dfx
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+from jaxtyping import Array, ArrayLike, Bool, Float
+
+from ._custom_types import State
+from ._scene import Scene
+from ._validation import ParameterError, as_float_array, is_concrete
+
+
+class Trajectory(eqx.Module):
+    """The result of [`jaxdyn.simulate`][]: states at the saved times, and the final state.
+
+    Derived outputs are computed on demand from the scene: `traj.energy`, `traj.omega`,
+    `traj.normal_force`... (any name in `traj.output_names`). Saved times after a terminating
+    event are `inf` (and their states and outputs are not meaningful): `traj.valid` masks them.
+    """
+
+    scene: Scene
+    ts: Float[Array, " times"]
+    ys: State
+    t_final: Float[Array, ""]
+    y_final: State
+    event: dict[str, Bool[Array, ""]]
+    result: dfx.RESULTS
+    stats: dict[str, Any]
+
+    @property
+    def valid(self) -> Bool[Array, " times"]:
+        """True for saved times reached before the run ended."""
+        return jnp.isfinite(self.ts) & (self.ts <= self.t_final)
+
+    @property
+    def output_names(self) -> tuple[str, ...]:
+        return self.scene.output_names()
+
+    def outputs(self) -> dict[str, Array]:
+        """All derived outputs at the saved times."""
+        return _outputs(self.scene, self.ts, self.ys)
+
+    def final_outputs(self) -> dict[str, Array]:
+        """All derived outputs at the final time (the event time if one ended the run)."""
+        return _outputs(self.scene, self.t_final[None], jax.tree.map(lambda x: x[None],
+                                                                    self.y_final))
+
+    @property
+    def event_occurred(self) -> Bool[Array, ""]:
+        """Whether a terminating event ended the run."""
+        flags = list(self.event.values())
+        return jnp.any(jnp.stack(flags)) if flags else jnp.asarray(False)
+
+    def report(self) -> dict[str, Any]:
+        """JSON-ready summary (see `Scene.report`)."""
+        event = {k: bool(v) for k, v in self.event.items()}
+        return self.scene.report(self.ts, self.ys, self.t_final, self.y_final, event)
+
+    def __getattr__(self, name: str):
+        if name.startswith("_"):
+            raise AttributeError(name)
+        names = self.scene.output_names()
+        if name in names:
+            return _outputs(self.scene, self.ts, self.ys)[name]
+        raise AttributeError(
+            f"Trajectory has no attribute {name!r}; derived outputs of this scene: {list(names)}"
+        )
+
+
+@eqx.filter_jit
+def _outputs(scene: Scene, ts, ys) -> dict[str, Array]:
+    return jax.vmap(scene.outputs)(ts, ys)
+
+
+def _event(scene: Scene, dtype) -> dfx.Event | None:
+    fns = scene.events()
+    if not fns:
+        return None
+
+    def wrap(f):
+        return lambda t, y, args, **kwargs: f(t, y)
+
+    tol = 1e-12 if dtype == jnp.float64 else 1e-6
+    return dfx.Event(
+        cond_fn={name: wrap(f) for name, f in fns.items()},
+        root_finder=optx.Newton(rtol=tol, atol=tol),
+    )
+
+
+def simulate(
+    scene: Scene,
+    y0: State,
+    t1: float | ArrayLike,
+    *,
+    t0: float | ArrayLike = 0.0,
+    ts: ArrayLike | None = None,
+    solver: dfx.AbstractSolver | None = None,
+    rtol: float = 1e-8,
+    atol: float = 1e-10,
+    stepsize_controller: dfx.AbstractStepSizeController | None = None,
+    dt0: float | None = None,
+    max_steps: int = 100_000,
+    adjoint: dfx.AbstractAdjoint | None = None,
+    events: bool = True,
+    progress: bool | dfx.AbstractProgressMeter = False,
+) -> Trajectory:
+    """Integrate a scene from `t0` to `t1`.
+
+    **Arguments:**
+
+    - `scene`: the [`jaxdyn.Scene`][].
+    - `y0`: the initial state, from `scene.state(...)`.
+    - `t1`: final time. The run ends earlier if a terminating event of the scene occurs (the
+      falling rod lying flat), located by Newton root finding on the dense interpolant.
+    - `t0`: initial time.
+    - `ts`: times at which to save the state (within `[t0, t1]`, increasing). By default the
+      state is saved at `t0` and at the final time.
+    - `solver`: any diffrax solver (default `diffrax.Tsit5()`).
+    - `rtol`, `atol`: tolerances of the default PID step-size controller.
+    - `stepsize_controller`: any diffrax controller (overrides `rtol`, `atol`); use
+      `diffrax.ConstantStepSize()` with `dt0` for fixed steps.
+    - `dt0`: initial step (chosen automatically by default for adaptive controllers).
+    - `max_steps`: an error is raised, never a silently truncated result, if more are needed.
+    - `adjoint`: any diffrax adjoint (default `diffrax.RecursiveCheckpointAdjoint()`).
+    - `events`: whether the scene's terminating events end the run.
+    - `progress`: `True` for a tqdm progress bar, or any diffrax progress meter.
+
+    **Returns:**
+
+    A [`jaxdyn.Trajectory`][]. Gradients flow through it with respect to the scene's parameters,
+    the initial state and the times (including the event time).
+    """
+    if not isinstance(scene, Scene):
+        raise ParameterError(f"scene={scene!r}: expected a jaxdyn.Scene")
+    y0 = scene.check_state(y0)
+    dtype = jnp.result_type(*jax.tree_util.tree_leaves(y0))
+    if not jnp.issubdtype(dtype, jnp.floating):
+        raise ParameterError(f"y0 has dtype {dtype}: expected floating point")
+    t0 = as_float_array("t0", t0, (), dtype)
+    t1 = as_float_array("t1", t1, (), dtype)
+    if is_concrete(t0, t1):
+        if not (np.isfinite(float(t0)) and np.isfinite(float(t1))):
+            raise ParameterError(f"t0={float(t0):g}, t1={float(t1):g}: times must be finite")
+        if not float(t1) > float(t0):
+            raise ParameterError(f"t1={float(t1):g}: must be greater than t0={float(t0):g}")
+    if ts is not None:
+        ts = as_float_array("ts", ts, None, dtype)
+        if ts.ndim != 1 or ts.size == 0:
+            raise ParameterError(f"ts has shape {ts.shape}: expected a non-empty 1-D array")
+        if is_concrete(ts, t0, t1):
+            a = np.asarray(ts)
+            if np.any(np.diff(a) < 0) or a[0] < float(t0) or a[-1] > float(t1):
+                raise ParameterError(
+                    f"ts from {a[0]:g} to {a[-1]:g}: must be increasing and within "
+                    f"[t0, t1] = [{float(t0):g}, {float(t1):g}]"
+                )
+    if not isinstance(max_steps, int) or max_steps <= 0:
+        raise ParameterError(f"max_steps={max_steps!r}: must be a positive integer")
+    if stepsize_controller is None:
+        for name, value in (("rtol", rtol), ("atol", atol)):
+            if not (np.isfinite(value) and value > 0):
+                raise ParameterError(f"{name}={value!r}: must be positive and finite")
+        stepsize_controller = dfx.PIDController(
+            rtol=jnp.asarray(rtol, dtype), atol=jnp.asarray(atol, dtype)
+        )
+    if progress is True:
+        meter: dfx.AbstractProgressMeter = dfx.TqdmProgressMeter()
+    elif progress is False:
+        meter = dfx.NoProgressMeter()
+    else:
+        meter = progress
+    return _simulate(
+        scene, y0, t0, t1, ts,
+        solver=dfx.Tsit5() if solver is None else solver,
+        controller=stepsize_controller,
+        dt0=None if dt0 is None else jnp.asarray(dt0, dtype),
+        max_steps=max_steps,
+        adjoint=dfx.RecursiveCheckpointAdjoint() if adjoint is None else adjoint,
+        events=events,
+        meter=meter,
+    )
+
+
+@eqx.filter_jit
+def _simulate(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps, adjoint, events,
+              meter) -> Trajectory:
+    y0 = scene.check(y0)
+    dtype = t0.dtype
+    first = dfx.SubSaveAt(t0=True) if ts is None else dfx.SubSaveAt(ts=ts)
+    saveat = dfx.SaveAt(subs=[first, dfx.SubSaveAt(t1=True)])
+    event = _event(scene, dtype) if events else None
+    sol = dfx.diffeqsolve(
+        dfx.ODETerm(scene.vector_field),
+        solver,
+        t0,
+        t1,
+        dt0,
+        y0,
+        saveat=saveat,
+        stepsize_controller=controller,
+        max_steps=max_steps,
+        adjoint=adjoint,
+        event=event,
+        progress_meter=meter,
+    )
+    (ts_saved, t_end), (ys_saved, y_end) = sol.ts, sol.ys
+    if ts is None:
+        ts_saved = jnp.concatenate([ts_saved, t_end])
+        ys_saved = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), ys_saved, y_end)
+    if event is None:
+        fired = {}
+    else:
+        fired = dict(sol.event_mask)
+    return Trajectory(
+        scene=scene,
+        ts=ts_saved,
+        ys=ys_saved,
+        t_final=t_end[0],
+        y_final=jax.tree.map(lambda a: a[0], y_end),
+        event=fired,
+        result=sol.result,
+        stats=dict(sol.stats),
+    )

@@ -1,0 +1,84 @@
+"""Input checks shared by every public entry point.
+
+A check is a triple `(field, violated, allowed)`: `violated` is a boolean array, true where the
+value is not allowed. The same triple is raised eagerly as a `ParameterError` when the value is
+concrete, and attached with `eqx.error_if` when the value is only known inside `jit`.
+"""
+
+from collections.abc import Iterable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+class ParameterError(ValueError):
+    """Raised for invalid input: the message names the field, the value and what is allowed."""
+
+
+Check = tuple[str, object, jax.Array | bool, str]
+"""`(field, value, violated, allowed)`."""
+
+
+def is_concrete(*xs) -> bool:
+    """True when none of `xs` is a tracer, so their values can be inspected eagerly."""
+    return not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(xs))
+
+
+def format_value(value) -> str:
+    try:
+        arr = np.asarray(value)
+    except (TypeError, ValueError):
+        return repr(value)
+    if arr.ndim == 0:
+        return f"{arr.item():g}" if arr.dtype.kind == "f" else repr(arr.item())
+    return np.array2string(arr, separator=", ", precision=6, max_line_width=10_000).replace(
+        "\n", ""
+    )
+
+
+def message(field: str, value, allowed: str) -> str:
+    return f"{field}={format_value(value)}: {allowed}"
+
+
+def raise_if_violated(checks: Iterable[Check]) -> None:
+    """Raise `ParameterError` for the first violated check whose value is concrete."""
+    for field, value, violated, allowed in checks:
+        if is_concrete(value, violated) and bool(np.any(np.asarray(violated))):
+            raise ParameterError(message(field, value, allowed))
+
+
+def as_float_array(field: str, value, shape: tuple[int, ...] | None = None, dtype=None):
+    """Convert `value` to a floating array, with a clear error for wrong types and shapes."""
+    if isinstance(value, str | bytes) or value is None:
+        raise ParameterError(message(field, value, "expected a number or an array of numbers"))
+    if isinstance(value, jax.Array):
+        arr = value
+        if not jnp.issubdtype(arr.dtype, jnp.floating):
+            arr = arr.astype(dtype or jnp.result_type(float))
+    else:
+        try:
+            np_value = np.asarray(value)
+        except (TypeError, ValueError) as e:
+            raise ParameterError(message(field, value, "expected a number or an array")) from e
+        if np_value.dtype.kind not in "biuf":
+            raise ParameterError(message(field, value, "expected real numbers"))
+        if np_value.dtype.kind == "f" and dtype is None and np_value.dtype != np.float64:
+            arr = jnp.asarray(np_value)  # keep float32/float16 as given
+        else:
+            arr = jnp.asarray(np_value, dtype=dtype or jnp.result_type(float))
+    if dtype is not None and arr.dtype != dtype:
+        arr = arr.astype(dtype)
+    if shape is not None and arr.shape != shape:
+        raise ParameterError(
+            f"{field} has shape {arr.shape}: expected shape {shape}"
+        )
+    return arr
+
+
+def finite_check(field: str, x) -> Check:
+    return (field, x, ~jnp.isfinite(x), "must be finite")
+
+
+def positive_check(field: str, x) -> Check:
+    return (field, x, ~((x > 0) & jnp.isfinite(x)), "must be positive and finite")
