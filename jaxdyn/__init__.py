@@ -7,10 +7,58 @@ from ._effects import (
     GravityGradient as GravityGradient,
     Rotor as Rotor,
 )
+from ._elliptic import (
+    carlson_rc as carlson_rc,
+    carlson_rf as carlson_rf,
+    carlson_rj as carlson_rj,
+    ellipf as ellipf,
+    ellipj as ellipj,
+    ellipk as ellipk,
+    ellippi as ellippi,
+)
+from ._free_body import (
+    elliptic_parameter as elliptic_parameter,
+    torque_free_omega as torque_free_omega,
+    torque_free_period as torque_free_period,
+)
 from ._inertia import inertia_tensor as inertia_tensor, principal_axes as principal_axes
+from ._polhode import (
+    polhode as polhode,
+    separatrix_condition as separatrix_condition,
+    separatrix_curves as separatrix_curves,
+)
 from ._rigid_body import RigidBody as RigidBody
 from ._rod import FallingRod as FallingRod
+from ._rotations import (
+    dcm_to_euler321 as dcm_to_euler321,
+    dcm_to_mrp as dcm_to_mrp,
+    dcm_to_quat as dcm_to_quat,
+    euler321_to_dcm as euler321_to_dcm,
+    euler321_to_quat as euler321_to_quat,
+    mrp_derivative as mrp_derivative,
+    mrp_from_quat as mrp_from_quat,
+    mrp_shadow as mrp_shadow,
+    mrp_switch as mrp_switch,
+    mrp_to_dcm as mrp_to_dcm,
+    quat_conjugate as quat_conjugate,
+    quat_derivative as quat_derivative,
+    quat_from_axis_angle as quat_from_axis_angle,
+    quat_from_mrp as quat_from_mrp,
+    quat_multiply as quat_multiply,
+    quat_normalize as quat_normalize,
+    quat_rotate as quat_rotate,
+    quat_to_axis_angle as quat_to_axis_angle,
+    quat_to_dcm as quat_to_dcm,
+    quat_to_euler321 as quat_to_euler321,
+    safe_norm as safe_norm,
+    skew as skew,
+)
 from ._scene import Scene as Scene
+from ._scenefile import (
+    SceneSpec as SceneSpec,
+    builtin_scenes as builtin_scenes,
+    load_scene as load_scene,
+)
 from ._simulate import Trajectory as Trajectory, simulate as simulate
 from ._validation import ParameterError as ParameterError
 

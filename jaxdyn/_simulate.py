@@ -83,7 +83,9 @@ def _event(scene: Scene, dtype) -> dfx.Event | None:
         return None
 
     def wrap(f):
-        return lambda t, y, args, **kwargs: f(t, y)
+        # diffrax compares the condition with a Python 0.0 in a `lax.cond`: with x64 enabled that
+        # is float64, so the condition is returned in the default float type.
+        return lambda t, y, args, **kwargs: f(t, y).astype(jnp.result_type(float))
 
     tol = 1e-12 if dtype == jnp.float64 else 1e-6
     return dfx.Event(

@@ -1,0 +1,141 @@
+"""Closed-form motion of the torque-free rigid body (Jacobi elliptic functions).
+
+With principal moments ordered so that the body spins about axis 3 (the axis whose rate never
+changes sign), `physics.md` section 2 gives
+
+    w1 = s1 A1 cn(u | m),   w2 = sigma s1 s3 A2 sn(u | m),   w3 = s3 A3 dn(u | m),   u = lam t + u0
+
+with `sigma = sign(I3 - I1)`, `s1`, `s3` the signs of the initial rates, and `u0` from the
+initial condition through the incomplete integral `F(phi0 | m)`. Every difference of invariants is
+written as `D_k = H^2 - 2 T I_k = sum_i I_i (I_i - I_k) w_i^2`, which avoids the cancellation of
+computing `H^2` and `2 T I_k` separately; in particular the complementary parameter
+`1 - m = (I3 - I1) D_2 / ((I3 - I2) D_1)` is exact near the separatrix, where `m -> 1`.
+"""
+
+from typing import NamedTuple
+
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float
+
+from ._elliptic import carlson_rf, ellipj, ellipk
+
+
+class _Setup(NamedTuple):
+    moments: Array  # as used (axis 3 = spin axis)
+    omega0: Array  # in the frame used
+    perm: Array  # original index of each used axis
+    sign: Array  # +-1: used = sign * original[perm]
+    amp: Array  # A1, A2, A3
+    signs: Array  # s1, sigma s1 s3, s3
+    m: Array
+    m1: Array
+    lam: Array
+    u0: Array
+    at_saddle: Array
+
+
+def _d(moments, omega, k):
+    """`D_k = H^2 - 2 T I_k`, without cancellation."""
+    return jnp.sum(moments * (moments - moments[k]) * omega**2)
+
+
+def _safe_div(a, b):
+    ok = b != 0
+    return jnp.where(ok, a / jnp.where(ok, b, 1.0), 0.0)
+
+
+def _setup(inertia, omega0) -> _Setup:
+    inertia = jnp.asarray(inertia)
+    dtype = inertia.dtype
+    omega0 = jnp.asarray(omega0, dtype)
+    # Ascending order by a proper rotation: an odd permutation also flips every rate's sign.
+    perm = jnp.argsort(inertia)
+    parity = jnp.round(jnp.linalg.det(jnp.eye(3, dtype=dtype)[perm]))
+    moments = inertia[perm]
+    omega = parity * omega0[perm]
+    # Below the separatrix (H^2 < 2 T I2) the body spins about the minor axis: reverse the order
+    # (an odd permutation again, so negate) so that the spin axis is axis 3.
+    reverse = _d(moments, omega, 1) < 0
+    moments = jnp.where(reverse, moments[::-1], moments)
+    omega = jnp.where(reverse, -omega[::-1], omega)
+    perm = jnp.where(reverse, perm[::-1], perm)
+    sign = jnp.where(reverse, -parity, parity)
+
+    i1, i2, i3 = moments
+    w1, w2, w3 = omega
+    d1, d2, d3 = _d(moments, omega, 0), _d(moments, omega, 1), _d(moments, omega, 2)
+    a1 = jnp.sqrt(jnp.maximum(_safe_div(-d3, i1 * (i3 - i1)), 0.0))
+    a2 = jnp.sqrt(jnp.maximum(_safe_div(-d3, i2 * (i3 - i2)), 0.0))
+    a3 = jnp.sqrt(jnp.maximum(_safe_div(d1, i3 * (i3 - i1)), 0.0))
+    m = jnp.clip(_safe_div((i2 - i1) * (-d3), (i3 - i2) * d1), 0.0, 1.0)
+    m1 = jnp.clip(_safe_div((i3 - i1) * d2, (i3 - i2) * d1), 0.0, 1.0)
+    lam = jnp.sqrt(jnp.maximum(_safe_div((i3 - i2) * d1, i1 * i2 * i3), 0.0))
+
+    s1 = jnp.where(w1 >= 0, 1.0, -1.0).astype(dtype)
+    s3 = jnp.where(w3 >= 0, 1.0, -1.0).astype(dtype)
+    sigma = jnp.sign(i3 - i1)
+    # Initial phase: cn(u0) = |w1| / A1 >= 0, sn(u0) = sigma s1 s3 w2 / A2, so
+    # u0 = F(phi0 | m) = sin(phi0) R_F(cos^2 phi0, m1 + m cos^2 phi0, 1) with |phi0| <= pi/2.
+    x = _safe_div(jnp.abs(w1), a1)
+    y = _safe_div(sigma * s1 * s3 * w2, a2)
+    r = jnp.sqrt(x**2 + y**2)
+    moving = r > 0
+    r = jnp.where(moving, r, 1.0)
+    c, s = x / r, y / r
+    at_saddle = (m1 == 0) & (c == 0)  # exactly at the intermediate-axis equilibrium
+    rf = carlson_rf(c**2, jnp.where(at_saddle, 1.0, m1 + m * c**2), jnp.ones_like(c))
+    # At the saddle itself (a pure spin about the intermediate axis) u0 would be infinite: the
+    # state is an equilibrium, handled in `torque_free_omega` with a finite placeholder phase.
+    u0 = jnp.where(moving & ~at_saddle, s * rf, 0.0)
+    return _Setup(
+        moments, omega, perm, sign, jnp.stack([a1, a2, a3]),
+        jnp.stack([s1, sigma * s1 * s3, s3]), m, m1, lam, u0, at_saddle,
+    )
+
+
+def torque_free_omega(
+    inertia: Float[ArrayLike, "3"], omega0: Float[ArrayLike, "3"], t: Float[ArrayLike, "*times"]
+) -> Float[Array, "*times 3"]:
+    """Body rates of a torque-free rigid body in closed form.
+
+    Valid on both sides of the separatrix and on it (`m = 1`, where `sn = tanh` and
+    `cn = dn = sech`: the homoclinic orbit), for principal moments in any order, with signs and
+    phase following the initial condition. Differentiable with respect to every argument.
+
+    **Arguments:**
+
+    - `inertia`: the three principal moments (any order).
+    - `omega0`: body rates at `t = 0` in the same principal frame (rad/s).
+    - `t`: times (any shape).
+
+    **Returns:**
+
+    Body rates with shape `t.shape + (3,)`.
+
+    Reference: Landau & Lifshitz, *Mechanics*, section 37.
+    """
+    p = _setup(inertia, omega0)
+    t = jnp.asarray(t, p.moments.dtype)
+    u = p.lam * t + p.u0
+    sn, cn, dn = ellipj(u, p.m, p.m1)
+    w = jnp.stack([cn, sn, dn], axis=-1) * (p.signs * p.amp)
+    w = jnp.where(p.at_saddle, p.omega0, w)
+    # Back to the original axes: original[perm] = sign * used.
+    out = jnp.zeros_like(w).at[..., p.perm].set(p.sign * w)
+    return out
+
+
+def torque_free_period(
+    inertia: Float[ArrayLike, "3"], omega0: Float[ArrayLike, "3"]
+) -> Float[Array, ""]:
+    """Period of the body rates, `4 K(m) / lam` (infinite on the separatrix)."""
+    p = _setup(inertia, omega0)
+    return 4 * ellipk(p.m, p.m1) / p.lam
+
+
+def elliptic_parameter(
+    inertia: Float[ArrayLike, "3"], omega0: Float[ArrayLike, "3"]
+) -> tuple[Float[Array, ""], Float[Array, ""]]:
+    """The parameter `m` of the elliptic solution and its complement `1 - m` (exact near 1)."""
+    p = _setup(inertia, omega0)
+    return p.m, p.m1

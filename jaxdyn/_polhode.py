@@ -1,0 +1,62 @@
+"""Polhodes and the separatrix of the torque-free body, for plotting and classification."""
+
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float
+
+from ._free_body import torque_free_omega, torque_free_period
+
+
+def separatrix_condition(
+    inertia: Float[ArrayLike, "3"], omega: Float[ArrayLike, "... 3"]
+) -> Float[Array, "..."]:
+    """`H^2 - 2 T I_2`, with `I_2` the intermediate principal moment.
+
+    Zero on the separatrix, positive for rotation about the major axis, negative about the minor
+    axis. Computed as `sum_i I_i (I_i - I_2) w_i^2`, so that it is accurate close to zero.
+    """
+    inertia = jnp.asarray(inertia)
+    omega = jnp.asarray(omega, inertia.dtype)
+    i2 = jnp.sort(inertia)[1]
+    return jnp.sum(inertia * (inertia - i2) * omega**2, axis=-1)
+
+
+def polhode(
+    inertia: Float[ArrayLike, "3"], omega0: Float[ArrayLike, "3"], num: int = 200
+) -> Float[Array, "num 3"]:
+    """One closed polhode: body rates over one period of the closed-form solution.
+
+    Multiply by the moments (`inertia * omega`) for the curve on the momentum sphere. On the
+    separatrix, where the period is infinite, returns the homoclinic orbit over `[-T, T]` with
+    `T` long enough to come within `1e-6` of the saddles.
+    """
+    inertia = jnp.asarray(inertia)
+    period = torque_free_period(inertia, omega0)
+    finite = jnp.isfinite(period)
+    # On the separatrix: from about -20/lam to 20/lam (sech(20) ~ 4e-9).
+    lam_scale = jnp.sqrt(jnp.sum(jnp.asarray(omega0, inertia.dtype) ** 2))
+    span = jnp.where(finite, period, 40.0 / jnp.where(lam_scale > 0, lam_scale, 1.0))
+    start = jnp.where(finite, 0.0, -0.5 * span)
+    t = start + span * jnp.linspace(0.0, 1.0, num, dtype=inertia.dtype)
+    return torque_free_omega(inertia, omega0, t)
+
+
+def separatrix_curves(
+    inertia: Float[ArrayLike, "3"], momentum: float = 1.0, num: int = 101
+) -> Float[Array, "4 num 3"]:
+    """The separatrix on the momentum sphere `|h| = momentum`: four arcs joining the two saddles
+    on the intermediate axis, `h1^2 (I2/I1 - 1) + h3^2 (I2/I3 - 1) = 0` (axes as given).
+
+    Requires three distinct moments: with two equal moments there is no intermediate axis.
+    """
+    inertia = jnp.asarray(inertia)
+    perm = jnp.argsort(inertia)
+    i1, i2, i3 = inertia[perm]
+    k = jnp.sqrt((i2 / i1 - 1) / (1 - i2 / i3))
+    psi = jnp.linspace(0.0, jnp.pi, num, dtype=inertia.dtype)
+    arcs = []
+    for a, b in ((1.0, 1.0), (1.0, -1.0), (-1.0, 1.0), (-1.0, -1.0)):
+        n = jnp.stack([a * jnp.ones_like(k), jnp.zeros_like(k), b * k]) / jnp.sqrt(1 + k**2)
+        e2 = jnp.array([0.0, 1.0, 0.0], inertia.dtype)
+        h_sorted = momentum * (jnp.cos(psi)[:, None] * e2 + jnp.sin(psi)[:, None] * n)
+        arcs.append(jnp.zeros_like(h_sorted).at[:, perm].set(h_sorted))
+    return jnp.stack(arcs)

@@ -1,0 +1,244 @@
+"""The torque-free body and its effects, checked against scipy integrations, closed forms and
+conservation laws."""
+
+import diffrax as dfx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import FINITE_DIFF, INTEGRATION, ROUNDOFF, central_difference, tol
+from scipy.integrate import solve_ivp
+from scipy.spatial.transform import Rotation
+
+import jaxdyn as jd
+
+
+TIGHT = dict(rtol=1e-12, atol=1e-13)
+
+
+def _scipy_euler(inertia, omega0, ts):
+    """Euler's equations integrated by scipy's DOP853: an independent reference."""
+    tensor = np.diag(inertia) if np.ndim(inertia) == 1 else np.asarray(inertia)
+    inv = np.linalg.inv(tensor)
+    sol = solve_ivp(lambda t, w: inv @ np.cross(tensor @ w, w), (0, ts[-1]), omega0,
+                    t_eval=ts, rtol=1e-13, atol=1e-14, method="DOP853")
+    return sol.y.T
+
+
+def _random_bodies(n, seed):
+    rng = np.random.default_rng(seed)
+    out = []
+    while len(out) < n:
+        inertia = rng.uniform(0.5, 3.0, 3)
+        if inertia.max() <= inertia.sum() - inertia.max():
+            out.append((inertia, rng.normal(size=3)))
+    return out
+
+
+@pytest.mark.parametrize("inertia, omega0", _random_bodies(6, 0))
+def test_exact_solution_matches_scipy_integration(inertia, omega0):
+    ts = np.linspace(0, 20, 201)
+    exact = jd.torque_free_omega(jnp.asarray(inertia), jnp.asarray(omega0), jnp.asarray(ts))
+    assert np.allclose(exact, _scipy_euler(inertia, omega0, ts), atol=1e-10)
+
+
+@pytest.mark.parametrize("side", [+1, -1, 0])
+def test_exact_solution_both_sides_of_separatrix_and_on_it(side):
+    inertia = np.array([1.0, 2.0, 3.0])
+    # On the separatrix: I1 (I1 - I2) w1^2 + I3 (I3 - I2) w3^2 = 0.
+    w1 = 0.5
+    w3 = w1 * np.sqrt(1 * (2 - 1) / (3 * (3 - 2))) * (1 + 0.05 * side)
+    omega0 = np.array([w1, 0.3, w3])
+    assert np.sign(jd.separatrix_condition(inertia, omega0)) == side or side == 0
+    ts = np.linspace(0, 15, 151)
+    exact = jd.torque_free_omega(jnp.asarray(inertia), jnp.asarray(omega0), jnp.asarray(ts))
+    assert np.allclose(exact, _scipy_euler(inertia, omega0, ts), atol=1e-9)
+    m, m1 = jd.elliptic_parameter(inertia, omega0)
+    assert np.isclose(m + m1, 1.0, rtol=tol(ROUNDOFF))
+    if side == 0:
+        assert abs(float(m1)) < 1e-15
+
+
+def test_simulate_matches_exact_solution_and_conserves_invariants():
+    body = jd.RigidBody([1.0, 2.0, 3.0])
+    scene = jd.Scene(body)
+    omega0 = jnp.array([0.3, 0.2, 1.0])
+    ts = jnp.linspace(0, 50, 101)
+    traj = jd.simulate(scene, scene.state(omega=omega0), 50.0, ts=ts, **TIGHT)
+    assert np.allclose(traj.omega, body.exact_omega(omega0, ts), atol=tol(INTEGRATION))
+    for name in ("energy", "momentum"):
+        v = np.asarray(getattr(traj, name))
+        assert np.max(np.abs(v / v[0] - 1)) < tol(INTEGRATION)
+    assert scene.conserved == ("energy", "momentum")
+
+
+def test_attitude_keeps_inertial_momentum_and_unit_quaternion():
+    scene = jd.Scene(jd.RigidBody([1.0, 2.0, 3.0]), attitude=True)
+    q0 = jnp.array([0.9, 0.1, -0.3, 0.2])
+    y0 = scene.state(omega=[0.3, 1.5, 0.4], quaternion=q0)
+    traj = jd.simulate(scene, y0, 30.0, ts=jnp.linspace(0, 30, 61), **TIGHT)
+    h_n = np.asarray(traj.momentum_inertial)
+    assert np.max(np.linalg.norm(h_n - h_n[0], axis=1)) < 1e-9 * np.linalg.norm(h_n[0])
+    assert np.max(np.abs(np.asarray(traj.quaternion_norm) - 1)) < 1e-10
+    assert "momentum_inertial" in scene.conserved
+
+
+def test_full_tensor_equals_rotated_principal_body():
+    moments = np.array([1.0, 2.0, 2.5])
+    rot = Rotation.from_rotvec([0.3, -0.5, 0.2]).as_matrix()
+    tensor = rot @ np.diag(moments) @ rot.T
+    body = jd.RigidBody(tensor)
+    got_moments, axes = body.principal_moments, body.principal_axes
+    assert np.allclose(got_moments, np.sort(moments), rtol=tol(ROUNDOFF))
+    assert np.allclose(axes @ np.diag(got_moments) @ axes.T, tensor, atol=1e-12)
+    assert np.isclose(np.linalg.det(axes), 1.0)
+    omega0 = np.array([0.4, -1.0, 0.7])
+    ts = np.linspace(0, 10, 21)
+    scene = jd.Scene(body)
+    traj = jd.simulate(scene, scene.state(omega=omega0), 10.0, ts=jnp.asarray(ts), **TIGHT)
+    assert np.allclose(traj.omega, _scipy_euler(tensor, omega0, ts), atol=1e-9)
+    assert np.allclose(body.exact_omega(omega0, ts), _scipy_euler(tensor, omega0, ts),
+                       atol=1e-10)
+
+
+def _flips(inertia, omega0, rotor, t1=60.0):
+    effects = () if rotor is None else (jd.Rotor(rotor),)
+    scene = jd.Scene(jd.RigidBody(inertia), effects)
+    traj = jd.simulate(scene, scene.state(omega=omega0), t1, ts=jnp.linspace(0, t1, 601),
+                       **TIGHT)
+    return traj
+
+
+def test_gyrostat_conserves_and_rotor_stabilises_intermediate_axis():
+    inertia, omega0 = [1.0, 2.0, 3.0], [1e-3, 2.0, 1e-3]
+    free = _flips(inertia, omega0, None)
+    assert np.min(np.asarray(free.omega)[:, 1]) < -1.9  # flips
+    # Spin w about axis 2 with rotor momentum h along it is stable when
+    # (I2 w + h - I1 w)(I2 w + h - I3 w) > 0: here h > (I3 - I2) w = 2.
+    for h, stable in ((2.5, True), (1.5, False)):
+        traj = _flips(inertia, omega0, [0.0, h, 0.0])
+        w = np.asarray(traj.omega)
+        assert (np.min(w[:, 1]) > 1.99) == stable
+        for name in ("energy", "momentum"):
+            v = np.asarray(getattr(traj, name))
+            assert np.max(np.abs(v / v[0] - 1)) < tol(INTEGRATION)
+        h_total = np.asarray(traj.angular_momentum)
+        assert np.allclose(h_total[0], np.array(inertia) * np.array(omega0) + [0, h, 0])
+
+
+def test_constant_body_torque_on_a_sphere_is_linear_in_time():
+    c = 2.0
+    tau = np.array([0.1, -0.2, 0.3])
+    scene = jd.Scene(jd.RigidBody([c, c, c]), (jd.ExternalTorque(tau),))
+    omega0 = np.array([0.5, 0.1, -0.2])
+    traj = jd.simulate(scene, scene.state(omega=omega0), 4.0, **TIGHT)
+    assert np.allclose(traj.y_final["omega"], omega0 + tau * 4.0 / c, rtol=1e-11)
+    assert scene.conserved == ()
+
+
+def test_inertial_torque_changes_inertial_momentum_linearly():
+    tau_n = jnp.array([0.05, 0.0, -0.02])
+    scene = jd.Scene(jd.RigidBody([1.0, 2.0, 3.0]), (jd.ExternalTorque(tau_n, frame="inertial"),))
+    assert scene.attitude
+    y0 = scene.state(omega=[0.2, 1.0, -0.3])
+    ts = jnp.linspace(0, 10, 11)
+    traj = jd.simulate(scene, y0, 10.0, ts=ts, **TIGHT)
+    h_n = np.asarray(traj.momentum_inertial)
+    assert np.allclose(h_n - h_n[0], np.outer(ts, tau_n), atol=1e-10)
+
+
+def test_time_dependent_torque():
+    scene = jd.Scene(jd.RigidBody([1.5, 1.5, 1.5]),
+                     (jd.ExternalTorque(lambda t: jnp.stack([jnp.cos(t), 0.0 * t, 0.0 * t])),))
+    traj = jd.simulate(scene, scene.state(omega=[0.0, 0.0, 0.0]), 2.0, **TIGHT)
+    assert np.isclose(traj.y_final["omega"][0], np.sin(2.0) / 1.5, rtol=1e-10)
+
+
+def test_gravity_gradient_torque_is_minus_gradient_of_potential():
+    # V = (3 n^2 / 2) o . I o in the body frame; rotating the body by a small angle a about axis
+    # k moves o to o - a e_k x o, and the torque about k is -dV/da.
+    n = 0.3
+    effect = jd.GravityGradient(orbit_rate=n)
+    body = jd.RigidBody([1.0, 2.0, 2.5])
+    q = jnp.asarray(Rotation.from_rotvec([0.4, -0.2, 0.9]).as_quat()[[3, 0, 1, 2]])
+    t = 0.7
+    o = effect.direction(t, q)
+    torque = effect.torque(t, {"quaternion": q, "omega": jnp.zeros(3)}, {}, body)
+
+    def potential(a, k):
+        e = jnp.zeros(3).at[k].set(1.0)
+        o_rot = o - a * jnp.cross(e, o)
+        return 1.5 * n**2 * o_rot @ (body.inertia * o_rot)
+
+    minus_grad = jnp.stack([-jax.grad(potential)(0.0, k) for k in range(3)])
+    assert np.allclose(torque, minus_grad, rtol=tol(ROUNDOFF), atol=1e-15)
+
+
+def test_gravity_gradient_equilibrium_stays_put():
+    # Smallest axis radial, largest along the orbit normal, rotating once per orbit: a relative
+    # equilibrium of the gravity-gradient torque.
+    n = 0.01
+    scene = jd.Scene(jd.RigidBody([60.0, 80.0, 100.0]), (jd.GravityGradient(n),))
+    traj = jd.simulate(scene, scene.state(omega=[0.0, 0.0, n]), 2 * np.pi / n, **TIGHT)
+    assert np.allclose(traj.y_final["omega"], [0, 0, n], atol=1e-12)
+    q = np.asarray(traj.y_final["quaternion"])
+    assert np.isclose(abs(q[0]), 1.0, atol=1e-9)  # one full turn: back to the start
+
+
+def test_gradient_through_simulation_matches_finite_differences():
+    scene = jd.Scene(jd.RigidBody([1.0, 2.0, 3.0]))
+
+    def loss(x):
+        s = scene.replace(inertia=x[:3])
+        traj = jd.simulate(s, s.state(omega=x[3:]), 5.0, **TIGHT)
+        return jnp.sum(traj.y_final["omega"] ** 2 * jnp.array([1.0, 2.0, 3.0]))
+
+    x = jnp.array([1.0, 2.0, 2.7, 0.3, 0.9, 0.5])
+    g = jax.grad(loss)(x)
+    fd = central_difference(loss, np.asarray(x), eps=1e-5)
+    assert np.allclose(g, fd, rtol=tol(FINITE_DIFF), atol=1e-7)
+
+
+def test_exact_solution_is_differentiable():
+    def f(x):
+        return jd.torque_free_omega(x[:3], x[3:], 7.0)[1]
+
+    x = jnp.array([1.0, 2.0, 3.0, 0.3, 1.2, 0.4])
+    fd = central_difference(f, np.asarray(x), eps=1e-6)
+    assert np.allclose(jax.grad(f)(x), fd, rtol=tol(FINITE_DIFF), atol=1e-8)
+
+
+def test_changing_a_parameter_does_not_recompile():
+    scene = jd.Scene(jd.RigidBody([1.0, 2.0, 3.0]))
+    y0 = scene.state(omega=[0.1, 1.0, 0.1])
+    jd.simulate(scene, y0, 3.0)
+    compiled = []
+
+    def count(*args, **kwargs):
+        compiled.append(1)
+
+    jax.monitoring.register_event_duration_secs_listener(
+        lambda name, *a, **k: count() if "backend_compile" in name else None
+    )
+    for inertia in ([1.1, 2.0, 3.0], [1.0, 2.5, 3.1]):
+        jd.simulate(scene.replace(inertia=inertia), y0, 4.0)
+    assert not compiled
+
+
+def test_solver_and_controller_choices():
+    scene = jd.Scene(jd.RigidBody([1.0, 2.0, 3.0]))
+    omega0 = jnp.array([0.3, 0.2, 1.0])
+    exact = scene.body.exact_omega(omega0, 2.0)
+    for kw in (dict(solver=dfx.Dopri8()), dict(solver=dfx.Kvaerno5()),
+               dict(solver=dfx.Heun(), stepsize_controller=dfx.ConstantStepSize(), dt0=1e-3)):
+        traj = jd.simulate(scene, scene.state(omega=omega0), 2.0, **kw)
+        assert np.allclose(traj.y_final["omega"], exact, atol=1e-5)
+
+
+def test_float32_rigid_body_keeps_dtype():
+    body = jd.RigidBody(np.array([1.0, 2.0, 3.0], np.float32))
+    scene = jd.Scene(body, (jd.Rotor(np.array([0.0, 0.5, 0.0], np.float32)),), attitude=True)
+    traj = jd.simulate(scene, scene.state(omega=np.array([0.1, 1.0, 0.1], np.float32)), 5.0,
+                       rtol=1e-5, atol=1e-6)
+    assert traj.y_final["omega"].dtype == jnp.float32
+    assert traj.y_final["quaternion"].dtype == jnp.float32

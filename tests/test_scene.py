@@ -1,0 +1,125 @@
+"""The scene protocol: only declared effects are traced, stored and integrated."""
+
+import diffrax as dfx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jaxdyn as jd
+
+
+INERTIA = jnp.array([1.0, 2.0, 3.0])
+OMEGA = jnp.array([0.3, 1.2, -0.4])
+
+
+def euler(t, w, inertia):
+    """Euler's equations written by hand: the baseline a scene must match."""
+    return jnp.cross(inertia * w, w) / inertia
+
+
+def gyrostat(t, w, args):
+    inertia, h = args
+    return jnp.cross(inertia * w + h, w) / inertia
+
+
+def _count(fn, *args):
+    return len(jax.make_jaxpr(fn)(*args).jaxpr.eqns)
+
+
+def _flops(fn, *args):
+    cost = jax.jit(fn).lower(*args).compile().cost_analysis()
+    cost = cost[0] if isinstance(cost, list | tuple) else cost
+    return cost["flops"]
+
+
+def _solve(vector_field, y0, args):
+    return dfx.diffeqsolve(
+        dfx.ODETerm(vector_field), dfx.Tsit5(), 0.0, 10.0, None, y0, args=args,
+        stepsize_controller=dfx.PIDController(rtol=1e-8, atol=1e-10), max_steps=1000,
+    ).ys
+
+
+def test_torque_free_scene_costs_what_hand_written_euler_costs():
+    scene = jd.Scene(jd.RigidBody(INERTIA))
+    y = scene.state(omega=OMEGA)
+    assert scene.state_shapes() == {"omega": (3,)}
+    # Same primitive operations in the vector field...
+    n_scene = _count(lambda s, y: s.vector_field(0.0, y), scene, y)
+    n_hand = _count(lambda i, w: euler(0.0, w, i), INERTIA, OMEGA)
+    assert n_scene == n_hand
+    # ...and the same compiled cost for a whole adaptive solve.
+    f_scene = _flops(lambda s, y: _solve(lambda t, y, a: s.vector_field(t, y), y, None),
+                     scene, y)
+    f_hand = _flops(lambda i, w: _solve(euler, w, i), INERTIA, OMEGA)
+    assert f_scene == f_hand
+
+
+def test_an_effect_adds_only_its_own_terms_and_state():
+    h = jnp.array([0.0, 0.5, 0.0])
+    scene = jd.Scene(jd.RigidBody(INERTIA), (jd.Rotor(h),))
+    y = scene.state(omega=OMEGA)
+    assert scene.state_shapes() == {"omega": (3,)}  # a constant-momentum rotor has no state
+    n_scene = _count(lambda s, y: s.vector_field(0.0, y), scene, y)
+    n_hand = _count(lambda i, h, w: gyrostat(0.0, w, (i, h)), INERTIA, h, OMEGA)
+    n_free = _count(lambda i, w: euler(0.0, w, i), INERTIA, OMEGA)
+    assert n_scene == n_hand == n_free + 1  # one addition: I w + h_r
+    # An effect that needs attitude brings the quaternion and only that.
+    gg = jd.Scene(jd.RigidBody(INERTIA), (jd.GravityGradient(0.001),))
+    assert gg.state_shapes() == {"omega": (3,), "quaternion": (4,)}
+
+
+def test_attitude_only_when_asked_or_needed():
+    body = jd.RigidBody(INERTIA)
+    assert not jd.Scene(body).attitude
+    assert jd.Scene(body, attitude=True).attitude
+    assert jd.Scene(body, (jd.ExternalTorque([0.0, 0.0, 1.0], frame="inertial"),)).attitude
+    assert not jd.Scene(body, (jd.ExternalTorque([0.0, 0.0, 1.0]),)).attitude
+
+
+def test_parameters_and_replace():
+    scene = jd.Scene(jd.RigidBody(INERTIA), (jd.Rotor([0.0, 1.0, 0.0]),))
+    assert set(scene.parameters()) == {"inertia", "rotor.momentum"}
+    new = scene.replace({"rotor.momentum": [0.0, 2.0, 0.0]}, inertia=[1.0, 2.0, 2.5])
+    assert np.allclose(new.parameters()["rotor.momentum"], [0.0, 2.0, 0.0])
+    assert np.allclose(new.body.inertia, [1.0, 2.0, 2.5])
+    with pytest.raises(jd.ParameterError, match="unknown parameter"):
+        scene.replace(mass=1.0)
+
+
+def test_vmap_over_parameters():
+    scene = jd.Scene(jd.RigidBody(INERTIA))
+    inertias = jnp.array([[1.0, 2.0, 3.0], [1.2, 2.0, 3.0], [1.0, 2.2, 3.0]])
+
+    def final(inertia):
+        s = scene.replace(inertia=inertia)
+        return jd.simulate(s, s.state(omega=OMEGA), 2.0, rtol=1e-10, atol=1e-12).y_final["omega"]
+
+    batched = jax.vmap(final)(inertias)
+    for i, inertia in enumerate(inertias):
+        exact = jd.torque_free_omega(inertia, OMEGA, 2.0)
+        assert np.allclose(batched[i], exact, atol=1e-8)
+
+
+def test_state_errors_name_the_variable():
+    scene = jd.Scene(jd.RigidBody(INERTIA))
+    with pytest.raises(jd.ParameterError, match="omega is required"):
+        scene.state()
+    with pytest.raises(jd.ParameterError, match="quaternion given"):
+        scene.state(omega=OMEGA, quaternion=[1.0, 0, 0, 0])
+    with pytest.raises(jd.ParameterError, match="expected shape"):
+        scene.state(omega=[1.0, 2.0])
+    with pytest.raises(jd.ParameterError, match="this scene integrates"):
+        jd.simulate(scene, {"theta": 0.1}, 1.0)
+    with pytest.raises(jd.ParameterError, match="cannot act on a falling-rod"):
+        jd.Scene(jd.FallingRod(), (jd.Rotor([0.0, 0.0, 1.0]),))
+
+
+def test_output_names_and_derived_outputs():
+    scene = jd.Scene(jd.RigidBody(INERTIA), attitude=True)
+    traj = jd.simulate(scene, scene.state(omega=OMEGA), 1.0, ts=jnp.linspace(0, 1, 5))
+    for name in ("omega", "energy", "momentum", "momentum_inertial", "quaternion"):
+        assert name in traj.output_names
+        assert getattr(traj, name).shape[0] == 5
+    with pytest.raises(AttributeError, match="derived outputs"):
+        traj.normal_force
