@@ -23,8 +23,20 @@ def gyrostat(t, w, args):
     return jnp.cross(inertia * w + h, w) / inertia
 
 
+def _count_eqns(jaxpr) -> int:
+    n = 0
+    for eqn in jaxpr.eqns:
+        subs = [v for v in eqn.params.values() if hasattr(v, "jaxpr") or hasattr(v, "eqns")]
+        if subs:
+            n += sum(_count_eqns(getattr(v, "jaxpr", v)) for v in subs)
+        else:
+            n += 1
+    return n
+
+
 def _count(fn, *args):
-    return len(jax.make_jaxpr(fn)(*args).jaxpr.eqns)
+    """Primitive operations in `fn`, counted inside nested calls too."""
+    return _count_eqns(jax.make_jaxpr(fn)(*args).jaxpr)
 
 
 def _flops(fn, *args):
