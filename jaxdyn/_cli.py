@@ -67,8 +67,6 @@ def _cmd_run(args, t_start: float) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    import jax.numpy as jnp
-
     from ._scenefile import load_scene
     from ._simulate import simulate
     from ._validation import ParameterError
@@ -79,10 +77,12 @@ def _cmd_run(args, t_start: float) -> int:
     if args.samples < 2:
         raise ParameterError(f"--samples={args.samples}: must be at least 2")
     spec = load_scene(args.scene, overrides)
-    ts = jnp.linspace(0.0, spec.t1, args.samples)
 
     def go():
-        traj = simulate(spec.scene, spec.y0, spec.t1, ts=ts, rtol=spec.rtol, atol=spec.atol)
+        traj = simulate(spec.scene, spec.y0, spec.t1, rtol=spec.rtol, atol=spec.atol,
+                        dense=True)
+        # Samples span the run as it happened (up to the event time if one ended it).
+        traj = traj.resample(args.samples)
         jax.block_until_ready(traj)
         return traj
 

@@ -119,7 +119,7 @@ def _number_or_list(field: str, value: Any) -> float | list[float]:
         return float(x)
 
     if isinstance(value, list):
-        return [num(x) for x in value]
+        return [_number_or_list(field, x) if isinstance(x, list) else num(x) for x in value]
     return num(value)
 
 
@@ -246,6 +246,10 @@ def load_scene(name_or_path: str, overrides: Mapping[str, Any] | None = None) ->
                 raise ParameterError(f"{key}={format_value(v)}: must be a positive number")
             run[key] = v
 
+    if kind == "rigid-body" and isinstance(values["inertia"], list) \
+            and len(values["inertia"]) == 9 and not isinstance(values["inertia"][0], list):
+        flat = values["inertia"]  # nine tensor entries, row by row
+        values["inertia"] = [flat[0:3], flat[3:6], flat[6:9]]
     body = spec["cls"](**{k: values[k] for k in spec["parameters"] if k in values})
     effect_objs = []
     for etype in effect_specs:
@@ -258,8 +262,11 @@ def load_scene(name_or_path: str, overrides: Mapping[str, Any] | None = None) ->
             raise ParameterError(f"effect {etype!r}: {err}") from None
     scene = Scene(body, tuple(effect_objs), attitude=bool(values.get("attitude", False))
                   or "quaternion0" in values)
-    y0 = scene.state(**{state: values[key] for key, state in spec["initial"].items()
-                        if key in values})
+    initial = {key: state for key, state in spec["initial"].items() if key in values}
+    try:
+        y0 = scene.state(**{state: values[key] for key, state in initial.items()})
+    except ParameterError as e:
+        raise ParameterError(f"{', '.join(initial)}: {e}") from None
     return SceneSpec(
         name=name, description=str(data.get("description", "")), scene=scene, y0=y0,
         t1=float(run["t1"]), rtol=float(run["rtol"]), atol=float(run["atol"]), values=values,

@@ -31,6 +31,22 @@ class Trajectory(eqx.Module):
     event: dict[str, Bool[Array, ""]]
     result: dfx.RESULTS
     stats: dict[str, Any]
+    interpolation: dfx.DenseInterpolation | None = None
+
+    def evaluate(self, t: Float[ArrayLike, " times"]) -> State:
+        """States at times `t` within the run, from the solver's dense output
+        (`simulate(..., dense=True)`)."""
+        if self.interpolation is None:
+            raise ParameterError("evaluate needs the dense output: simulate(..., dense=True)")
+        t = jnp.asarray(t, self.t_final.dtype)
+        return jax.vmap(self.interpolation.evaluate)(t)
+
+    def resample(self, num: int) -> "Trajectory":
+        """The same run saved at `num` evenly spaced times from its start to its end (the event
+        time if one ended it), from the dense output."""
+        t0 = self.interpolation.t0 if self.interpolation is not None else self.ts[0]
+        ts = jnp.linspace(t0, self.t_final, num)
+        return eqx.tree_at(lambda tr: (tr.ts, tr.ys), self, (ts, self.evaluate(ts)))
 
     @property
     def valid(self) -> Bool[Array, " times"]:
@@ -110,6 +126,7 @@ def simulate(
     adjoint: dfx.AbstractAdjoint | None = None,
     events: bool = True,
     progress: bool | dfx.AbstractProgressMeter = False,
+    dense: bool = False,
 ) -> Trajectory:
     """Integrate a scene from `t0` to `t1`.
 
@@ -131,6 +148,8 @@ def simulate(
     - `adjoint`: any diffrax adjoint (default `diffrax.RecursiveCheckpointAdjoint()`).
     - `events`: whether the scene's terminating events end the run.
     - `progress`: `True` for a tqdm progress bar, or any diffrax progress meter.
+    - `dense`: keep the solver's dense output, for `Trajectory.evaluate` and
+      `Trajectory.resample` at any time within the run.
 
     **Returns:**
 
@@ -185,16 +204,17 @@ def simulate(
         adjoint=dfx.RecursiveCheckpointAdjoint() if adjoint is None else adjoint,
         events=events,
         meter=meter,
+        dense=dense,
     )
 
 
 @eqx.filter_jit
 def _simulate(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps, adjoint, events,
-              meter) -> Trajectory:
+              meter, dense) -> Trajectory:
     y0 = scene.check(y0)
     dtype = t0.dtype
     first = dfx.SubSaveAt(t0=True) if ts is None else dfx.SubSaveAt(ts=ts)
-    saveat = dfx.SaveAt(subs=[first, dfx.SubSaveAt(t1=True)])
+    saveat = dfx.SaveAt(subs=[first, dfx.SubSaveAt(t1=True)], dense=dense)
     event = _event(scene, dtype) if events else None
     sol = dfx.diffeqsolve(
         dfx.ODETerm(scene.vector_field),
@@ -227,4 +247,5 @@ def _simulate(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps, adjo
         event=fired,
         result=sol.result,
         stats=dict(sol.stats),
+        interpolation=sol.interpolation,
     )

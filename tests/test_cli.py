@@ -1,0 +1,163 @@
+"""The `jaxdyn` command: results against independent references, and bad input."""
+
+import json
+import subprocess
+import sys
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+import jaxdyn as jd
+from jaxdyn._cli import main
+
+
+def run_cli(capsys, *argv):
+    try:
+        status = main(list(argv))
+    except SystemExit as e:
+        status = e.code
+    out, err = capsys.readouterr()
+    return status, out, err
+
+
+def run_json(capsys, *argv):
+    status, out, err = run_cli(capsys, *argv, "--json")
+    assert status == 0, err
+    return json.loads(out)
+
+
+def test_default_run_is_the_falling_rod(capsys):
+    out = run_json(capsys, "run")
+    assert out["scene"] == "falling-rod"
+    rod = jd.FallingRod(length=1.0, mass=1.0, g=9.81)
+    theta0 = out["parameters"]["theta0"]
+    assert np.isclose(out["impact_time"], rod.fall_time(theta0), rtol=1e-9)
+    assert np.isclose(out["impact_rate"], rod.rate(np.pi / 2, theta0), rtol=1e-9)
+    # Minimum of N / (m g) over the fall, from the energy integral on a fine grid of angles.
+    theta = np.linspace(theta0, np.pi / 2, 20001)
+    n_min = float(np.min(rod.normal_force_energy(theta, theta0))) / 9.81
+    assert np.isclose(out["min_normal_force_over_weight"], n_min, rtol=1e-4)
+    assert out["energy_rel_error"] < 1e-8
+    assert out["timing"]["run_s"] > 0
+
+
+def test_rod_parameters_by_set(capsys):
+    out = run_json(capsys, "run", "--set", "length=2.0", "--set", "g=3.7",
+                   "--set", "theta0=0.2", "--set", "theta_dot0=0.1")
+    rod = jd.FallingRod(length=2.0, g=3.7)
+    assert np.isclose(out["impact_time"], rod.fall_time(0.2, 0.1), rtol=1e-9)
+
+
+def test_rod_that_never_falls_reports_null(capsys):
+    out = run_json(capsys, "run", "--set", "theta0=0", "--t1", "2")
+    assert out["impact_time"] is None and out["event"] is None
+
+
+def test_torque_free_against_scipy(capsys):
+    inertia, omega0, t1 = [2.0, 1.0, 2.5], [0.4, -1.1, 0.3], 17.0
+    out = run_json(capsys, "run", "torque-free", "--set", "inertia=2,1,2.5",
+                   "--set", "omega0=0.4,-1.1,0.3", "--t1", "17")
+    inertia = np.array(inertia)
+    ref = solve_ivp(lambda t, w: np.cross(inertia * w, w) / inertia, (0, t1), omega0,
+                    rtol=1e-13, atol=1e-14, method="DOP853").y[:, -1]
+    assert np.allclose(out["omega_final"], ref, atol=1e-8)
+    assert out["energy_rel_error"] < 1e-9 and out["momentum_rel_error"] < 1e-9
+
+
+def test_torque_free_with_full_tensor(capsys):
+    out = run_json(capsys, "run", "torque-free", "--set", "inertia=2,0.1,0,0.1,1.5,0.2,0,0.2,1",
+                   "--set", "omega0=0.4,-1.1,0.3", "--t1", "5")
+    tensor = np.array([[2, 0.1, 0], [0.1, 1.5, 0.2], [0, 0.2, 1]])
+    exact = jd.RigidBody(tensor).exact_omega(jnp.array([0.4, -1.1, 0.3]), 5.0)
+    assert np.allclose(out["omega_final"], exact, atol=1e-8)
+
+
+def test_scenes_listing(capsys):
+    status, out, _ = run_cli(capsys, "scenes", "--json")
+    assert status == 0
+    names = json.loads(out)
+    assert {"falling-rod", "torque-free", "intermediate-axis", "gyrostat",
+            "gravity-gradient"} <= set(names)
+
+
+@pytest.mark.parametrize("scene", ["falling-rod", "torque-free"])
+def test_plot(capsys, tmp_path, scene):
+    png = tmp_path / "out.png"
+    status, _, err = run_cli(capsys, "run", scene, "--t1", "3", "--plot", str(png))
+    assert status == 0, err
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_scene_file_with_effects(capsys, tmp_path):
+    path = tmp_path / "spinner.toml"
+    path.write_text(
+        'body = "rigid-body"\nt1 = 5.0\n[parameters]\ninertia = [1.0, 2.0, 3.0]\n'
+        'omega0 = [0.001, 2.0, 0.001]\n[[effects]]\ntype = "rotor"\nmomentum = [0.0, 3.0, 0.0]\n'
+    )
+    out = run_json(capsys, "run", str(path), "--set", "rotor.momentum=0,2.5,0")
+    assert out["effects"] == ["rotor"]
+    assert out["parameters"]["rotor.momentum"] == [0.0, 2.5, 0.0]
+    assert out["energy_rel_error"] < 1e-9 and out["momentum_rel_error"] < 1e-9
+
+
+BAD_TOML = {
+    "malformed": ("body = 'rigid-body\n", "malformed TOML"),
+    "unknown key": ('body = "rigid-body"\ncolour = 3\n', "unknown key"),
+    "unknown body": ('body = "pendulum"\n', "body='pendulum'"),
+    "unknown parameter": ('body = "falling-rod"\n[parameters]\nlength = 1.0\ntheta0 = 0.1\n'
+                          'spin = 2\n', "unknown parameter 'spin'"),
+    "wrong type": ('body = "falling-rod"\n[parameters]\nlength = "long"\ntheta0 = 0.1\n',
+                   "length='long': expected numbers"),
+    "unknown effect": ('body = "rigid-body"\n[parameters]\ninertia = [1, 2, 3]\n'
+                       'omega0 = [1, 0, 0]\n[[effects]]\ntype = "magnet"\n', "magnet"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD_TOML))
+def test_bad_scene_files(capsys, tmp_path, case):
+    text, expected = BAD_TOML[case]
+    path = tmp_path / "bad.toml"
+    path.write_text(text)
+    status, out, err = run_cli(capsys, "run", str(path))
+    assert status == 2 and out == ""
+    assert expected in err and len(err.strip().splitlines()) == 1
+
+
+BAD_SETS = [
+    (["--set", "length=-1"], "length=-1: must be positive"),
+    (["--set", "mass=nan"], "mass=nan: must be positive"),
+    (["--set", "g=inf"], "g=inf: must be positive"),
+    (["--set", "theta0=2"], "within [-pi/2, pi/2]"),
+    (["--set", "theta0=abc"], "theta0='abc': expected numbers"),
+    (["--set", "spin=2"], "unknown parameter 'spin'"),
+    (["--set", "length"], "expected NAME=VALUE"),
+    (["--t1", "-1"], "t1=-1: must be a positive number"),
+    (["torque-free", "--set", "inertia=1,2,10"], "triangle inequality"),
+    (["torque-free", "--set", "inertia=1,2"], "expected 3 principal moments or a 3x3 tensor"),
+    (["torque-free", "--set", "inertia=1,0.5,0,0,1,0,0,0,1"], "must be symmetric"),
+    (["torque-free", "--set", "inertia=-1,2,2"], "must be positive"),
+    (["torque-free", "--set", "omega0=1,2"], "expected shape (3,)"),
+    (["torque-free", "--set", "rotor.momentum=1,2,3"], "has no 'rotor' effect"),
+    (["no-such-scene"], "not a built-in scene or a file"),
+    (["--frobnicate"], "unrecognized arguments"),
+]
+
+
+@pytest.mark.parametrize("argv, expected", BAD_SETS, ids=[" ".join(a) for a, _ in BAD_SETS])
+def test_bad_values_exit_2_with_one_line(capsys, argv, expected):
+    status, out, err = run_cli(capsys, "run", *argv)
+    assert status == 2 and out == ""
+    assert expected in err, err
+    assert len(err.strip().splitlines()) == 1
+
+
+def test_console_script_fails_cleanly_without_traceback():
+    proc = subprocess.run(
+        [sys.executable, "-m", "jaxdyn._cli", "run", "--set", "length=0"],
+        capture_output=True, text=True, timeout=120,
+    )
+    assert proc.returncode == 2
+    assert "Traceback" not in proc.stderr
+    assert proc.stderr.strip() == "jaxdyn: error: length=0: must be positive and finite"
