@@ -62,5 +62,4 @@ from ._scenefile import (
 from ._simulate import Trajectory as Trajectory, simulate as simulate
 from ._validation import ParameterError as ParameterError
 
-
 __version__ = "0.1.0"

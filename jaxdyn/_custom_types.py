@@ -4,7 +4,6 @@ from typing import Any, TypeAlias
 
 from jaxtyping import Array, ArrayLike, Bool, Float
 
-
 State: TypeAlias = dict[str, Float[Array, "..."]]
 """A scene's state: a dict of named arrays, assembled from the body and the declared effects."""
 

@@ -10,7 +10,7 @@ from ._validation import Check
 
 
 class AbstractEffect(eqx.Module):
-    """An effect acting on a rigid body.
+    r"""An effect acting on a rigid body.
 
     An effect may contribute any of: an external torque (`torque`), internal angular momentum
     stored in a device (`momentum`) and its rate (`momentum_rate`), its own state variables
@@ -18,7 +18,7 @@ class AbstractEffect(eqx.Module):
     return `None`, so nothing is traced for them: a scene pays only for the effects it declares.
 
     The rigid body assembles Euler's equations as
-    $I \\dot\\omega = (I\\omega + \\textstyle\\sum h) \\times \\omega - \\sum \\dot h + \\sum \\tau$.
+    $I \dot\omega = (I\omega + \sum h) \times \omega - \sum \dot h + \sum \tau$.
     """
 
     kind: ClassVar[str]

@@ -1,11 +1,11 @@
-"""The falling rod: a slender rod standing on frictionless ice slides and falls.
+r"""The falling rod: a slender rod standing on frictionless ice slides and falls.
 
 With no horizontal force the centre of mass (CM) moves only vertically. Angular momentum about the
 CM (`H_dot = L_c`), the super-particle theorem (`F = m a_c`) and the constraint
 `y_c = (L/2) cos(theta)` give (see `physics.md`, section 1)
 
-$$\\ddot\\theta = \\frac{3 \\sin\\theta\\,(2 g - L \\dot\\theta^2 \\cos\\theta)}{L (1 + 3\\sin^2\\theta)},
-\\qquad N = m g - m \\tfrac{L}{2}(\\dot\\theta^2\\cos\\theta + \\ddot\\theta \\sin\\theta).$$
+$$\ddot\theta = \frac{3 \sin\theta\,(2 g - L \dot\theta^2 \cos\theta)}{L (1 + 3\sin^2\theta)},
+\qquad N = m g - m \tfrac{L}{2}(\dot\theta^2\cos\theta + \ddot\theta \sin\theta).$$
 """
 
 from typing import Any, ClassVar
@@ -17,7 +17,6 @@ from jaxtyping import Array, ArrayLike, Float
 from ._body import AbstractBody
 from ._custom_types import Scalar, State
 from ._validation import Check, ParameterError, as_float_array, positive_check
-
 
 # Gauss-Legendre nodes for the fall-time quadrature (three panels of 32 nodes; see `fall_time`).
 _GL_X, _GL_W = np.polynomial.legendre.leggauss(32)
@@ -163,11 +162,11 @@ class FallingRod(AbstractBody):
     # -- analytic companions --------------------------------------------------------------------
 
     def rate(self, theta: ArrayLike, theta0: ArrayLike, theta_dot0: ArrayLike = 0.0) -> Array:
-        """`|theta_dot|` at angle `theta` from the energy integral, starting at
+        r"""`|theta_dot|` at angle `theta` from the energy integral, starting at
         `(theta0, theta_dot0)`.
 
-        $$\\dot\\theta^2 (1 + 3\\sin^2\\theta) = \\dot\\theta_0^2 (1 + 3\\sin^2\\theta_0)
-        + \\frac{24 g}{L} \\sin\\frac{\\theta - \\theta_0}{2} \\sin\\frac{\\theta + \\theta_0}{2},$$
+        $$\dot\theta^2 (1 + 3\sin^2\theta) = \dot\theta_0^2 (1 + 3\sin^2\theta_0)
+        + \frac{24 g}{L} \sin\frac{\theta - \theta_0}{2} \sin\frac{\theta + \theta_0}{2},$$
 
         the product form of `12 (cos(theta0) - cos(theta)) / 2`, which keeps every digit when
         `theta0` is tiny. Returns 0 where the energy does not reach `theta`.

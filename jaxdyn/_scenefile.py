@@ -34,7 +34,6 @@ from ._rod import FallingRod
 from ._scene import Scene
 from ._validation import ParameterError, format_value
 
-
 # Per body: parameters passed to the body, then initial values and their state names.
 _BODIES: dict[str, dict[str, Any]] = {
     "falling-rod": {

@@ -4,7 +4,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-
 # Relative tolerances keyed by dtype, for results that should be exact up to round-off
 # accumulated over a short computation (closed forms, special functions, identities).
 ROUNDOFF = {jnp.dtype("float64"): 1e-12, jnp.dtype("float32"): 1e-5}

@@ -12,7 +12,6 @@ from scipy.spatial.transform import Rotation
 
 import jaxdyn as jd
 
-
 TIGHT = dict(rtol=1e-12, atol=1e-13)
 
 

@@ -11,7 +11,6 @@ from scipy.integrate import quad
 
 import jaxdyn as jd
 
-
 ROD = jd.FallingRod(length=1.3, mass=2.0, g=9.81)
 SCENE = jd.Scene(ROD)
 TIGHT = dict(rtol=1e-12, atol=1e-12)

@@ -8,7 +8,6 @@ import pytest
 
 import jaxdyn as jd
 
-
 INERTIA = jnp.array([1.0, 2.0, 3.0])
 OMEGA = jnp.array([0.3, 1.2, -0.4])
 
