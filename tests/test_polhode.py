@@ -1,0 +1,66 @@
+"""Polhodes, the separatrix and the period of the free body."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import ROUNDOFF, tol
+from scipy.integrate import solve_ivp
+
+import jaxdyn as jd
+
+
+@pytest.mark.parametrize("inertia", [[1.0, 2.0, 3.0], [3.0, 1.0, 2.5], [2.0, 2.6, 1.1]])
+def test_separatrix_curves_lie_on_the_separatrix(inertia):
+    i1, i2, i3 = np.sort(inertia)
+    order = np.argsort(inertia)
+    arcs = np.asarray(jd.separatrix_curves(jnp.asarray(inertia), momentum=2.0, num=51))
+    assert arcs.shape == (4, 51, 3)
+    h = arcs.reshape(-1, 3)[:, order]  # components in ascending-moment order
+    assert np.allclose(np.linalg.norm(h, axis=1), 2.0, rtol=tol(ROUNDOFF))
+    assert np.allclose(h[:, 0] ** 2 * (i2 / i1 - 1) + h[:, 2] ** 2 * (i2 / i3 - 1), 0.0,
+                       atol=1e-12)
+    # Each arc joins the two saddles on the intermediate axis.
+    assert np.allclose(np.abs(arcs[:, [0, -1]][..., order[1]]), 2.0)
+    # A state on the separatrix has zero separatrix condition.
+    omega = arcs[0, 20] / np.asarray(inertia)
+    assert abs(float(jd.separatrix_condition(jnp.asarray(inertia), omega))) < 1e-12
+
+
+def test_separatrix_condition_keeps_digits_near_zero():
+    inertia = jnp.array([1.0, 2.0, 3.0])
+    eps = 1e-9
+    value = jd.separatrix_condition(inertia, jnp.array([eps, 2.0, 2 * eps]))
+    # sum_i I_i (I_i - I_2) w_i^2, evaluated by hand: the naive H^2 - 2 T I_2 cancels 18 digits.
+    expected = 1 * (1 - 2) * eps**2 + 3 * (3 - 2) * (2 * eps) ** 2
+    assert np.isclose(value, expected, rtol=1e-14)
+
+
+@pytest.mark.parametrize("omega0", [[0.3, 0.2, 1.0], [1.0, 0.5, 0.1], [0.01, 2.0, 0.02]])
+def test_polhode_is_closed_and_keeps_both_invariants(omega0):
+    inertia = np.array([1.0, 2.0, 3.0])
+    omega0 = np.array(omega0)
+    curve = np.asarray(jd.polhode(jnp.asarray(inertia), jnp.asarray(omega0), num=301))
+    energy = np.sum(inertia * curve**2, axis=1)
+    momentum = np.sum((inertia * curve) ** 2, axis=1)
+    assert np.allclose(energy, np.sum(inertia * omega0**2), rtol=1e-12)
+    assert np.allclose(momentum, np.sum((inertia * omega0) ** 2), rtol=1e-12)
+    assert np.allclose(curve[0], curve[-1], atol=1e-9)
+
+
+def test_period_against_scipy_integration():
+    inertia = np.array([1.0, 2.0, 3.0])
+    for omega0 in ([0.3, 0.2, 1.0], [1.0, 0.5, 0.1]):
+        period = float(jd.torque_free_period(jnp.asarray(inertia), jnp.asarray(omega0)))
+        sol = solve_ivp(lambda t, w: np.cross(inertia * w, w) / inertia, (0, period), omega0,
+                        rtol=1e-13, atol=1e-14, method="DOP853")
+        assert np.allclose(sol.y[:, -1], omega0, atol=1e-9)
+
+
+def test_period_diverges_logarithmically_at_the_separatrix():
+    inertia = jnp.array([1.0, 2.0, 3.0])
+    periods = [float(jd.torque_free_period(inertia, jnp.array([e, 2.0, e])))
+               for e in (1e-4, 1e-6, 1e-8)]
+    steps = np.diff(periods)
+    # 4 K(m) / lam with K ~ log(4 / sqrt(1 - m)) / ... : equal steps per decade of distance.
+    assert np.allclose(steps[0], steps[1], rtol=1e-3) and steps[0] > 0
+    assert np.isinf(jd.torque_free_period(inertia, jnp.array([0.0, 2.0, 0.0])))
