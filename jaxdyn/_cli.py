@@ -2,6 +2,7 @@
 
 import argparse
 import json
+import re
 import sys
 import time
 from typing import Any, NoReturn
@@ -25,6 +26,8 @@ def _build_parser() -> argparse.ArgumentParser:
     run.add_argument("--t1", type=float, help="final time (s)")
     run.add_argument("--samples", type=int, default=2001,
                      help="number of saved samples (default 2001)")
+    run.add_argument("--max-steps", type=int, default=100_000,
+                     help="solver step budget; exceeding it is an error (default 100000)")
     run.add_argument("--json", action="store_true", help="print one JSON object")
     run.add_argument("--plot", metavar="FILE", help="write a PNG figure")
     scenes = sub.add_parser("scenes", help="list the built-in scenes")
@@ -80,7 +83,7 @@ def _cmd_run(args, t_start: float) -> int:
 
     def go():
         traj = simulate(spec.scene, spec.y0, spec.t1, rtol=spec.rtol, atol=spec.atol,
-                        dense=True)
+                        max_steps=args.max_steps, dense=True)
         # Samples span the run as it happened (up to the event time if one ended it).
         traj = traj.resample(args.samples)
         jax.block_until_ready(traj)
@@ -137,6 +140,15 @@ def _fmt(value: Any) -> str:
     return str(value)
 
 
+def _runtime_message(error: RuntimeError) -> str:
+    """The message of an `eqx.error_if` failure, without equinox's debugging advice."""
+    text = str(error)
+    match = re.search(r"EquinoxRuntimeError: (.*)", text)
+    line = match.group(1) if match else next(
+        (ln.strip() for ln in text.splitlines() if ln.strip()), type(error).__name__)
+    return line.replace("`max_steps`", "--max-steps")
+
+
 def main(argv: list[str] | None = None) -> int:
     t_start = time.perf_counter()
     args = _build_parser().parse_args(argv)
@@ -149,8 +161,7 @@ def main(argv: list[str] | None = None) -> int:
     except ParameterError as e:
         _fail(str(e), 2)
     except RuntimeError as e:  # runtime checks inside jit (eqx.error_if), solver failures
-        first = next((ln.strip() for ln in str(e).splitlines() if ln.strip()), "")
-        _fail(f"simulation failed: {first}", 1)
+        _fail(f"simulation failed: {_runtime_message(e)}", 1)
     except ModuleNotFoundError as e:
         if e.name == "matplotlib":
             _fail("--plot needs matplotlib: pip install 'jaxdyn[plot]'", 2)

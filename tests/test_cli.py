@@ -161,3 +161,10 @@ def test_console_script_fails_cleanly_without_traceback():
     assert proc.returncode == 2
     assert "Traceback" not in proc.stderr
     assert proc.stderr.strip() == "jaxdyn: error: length=0: must be positive and finite"
+
+
+def test_step_budget_exhaustion_is_an_error_not_a_truncation(capsys):
+    status, out, err = run_cli(capsys, "run", "torque-free", "--max-steps", "20")
+    assert status == 1 and out == ""
+    assert err.strip() == ("jaxdyn: error: simulation failed: The maximum number of solver "
+                           "steps was reached. Try increasing --max-steps.")
