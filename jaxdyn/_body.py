@@ -50,8 +50,14 @@ class AbstractBody(eqx.Module):
         """Terminating events: name -> function of `(t, y)` whose sign change ends the run."""
         return {}
 
-    def report(self, ts, ys: State, t_final, y_final: State, event: Mapping) -> dict[str, Any]:
-        """Body-specific summary of a run (plain Python values, JSON-ready)."""
+    def summary(self, ts, ys: State, valid, t_final, y_final: State,
+                event: Mapping[str, Array]) -> dict[str, Any]:
+        """Body-specific summary of a run, as arrays (traceable: it runs under `jit`).
+
+        `valid` masks the saved samples reached by the run. A value that does not exist for
+        this run (the impact time of a rod that never lies flat) is returned as `nan`; reports
+        turn non-finite values into `null`.
+        """
         return {}
 
     def __check_init__(self):

@@ -161,8 +161,8 @@ class RigidBody(AbstractBody):
             out["quaternion_norm"] = jnp.linalg.norm(y["quaternion"])
         return out
 
-    def report(self, ts, ys, t_final, y_final, event) -> dict[str, Any]:
-        return {"omega_final": [float(x) for x in y_final["omega"]]}
+    def summary(self, ts, ys, valid, t_final, y_final, event) -> dict[str, Any]:
+        return {"omega_final": y_final["omega"]}
 
     # -- analytic companion ---------------------------------------------------------------------
 

@@ -140,21 +140,19 @@ class FallingRod(AbstractBody):
         # The CM height (L/2) cos(theta) changes sign as the rod lies flat on either side.
         return {"flat": lambda t, y: jnp.cos(y["theta"])}
 
-    def report(self, ts, ys, t_final, y_final, event) -> dict[str, Any]:
-        flat = bool(event.get("flat", False))
-        valid = np.isfinite(np.asarray(ts)) & (np.asarray(ts) <= float(t_final))
-        out = self.outputs(ts, ys, (), False)
-        n_over_w = np.asarray(out["normal_force_over_weight"])[valid]
-        theta0 = ys["theta"][0]
-        theta_dot0 = ys["theta_dot"][0]
+    def summary(self, ts, ys, valid, t_final, y_final, event) -> dict[str, Any]:
+        flat = event.get("flat", jnp.asarray(False))
+        n_over_w = self.outputs(ts, ys, (), False)["normal_force_over_weight"]
+        theta0, theta_dot0 = ys["theta"][0], ys["theta_dot"][0]
+        nan = jnp.asarray(jnp.nan, t_final.dtype)
         return {
-            "impact_time": float(t_final) if flat else None,
-            "impact_rate": float(y_final["theta_dot"]) if flat else None,
-            "min_normal_force_over_weight": float(np.min(n_over_w)),
+            "impact_time": jnp.where(flat, t_final, nan),
+            "impact_rate": jnp.where(flat, y_final["theta_dot"], nan),
+            "min_normal_force_over_weight": jnp.min(jnp.where(valid, n_over_w, jnp.inf)),
             "reference": {
-                "impact_time": _none_if_inf(self.fall_time(theta0, theta_dot0)),
-                "impact_rate": float(
-                    jnp.sign(y_final["theta"]) * self.rate(jnp.pi / 2, theta0, theta_dot0)
+                "impact_time": self.fall_time(theta0, theta_dot0),
+                "impact_rate": jnp.sign(y_final["theta"]) * self.rate(
+                    jnp.pi / 2, theta0, theta_dot0
                 ),
             },
         }
@@ -243,7 +241,3 @@ class FallingRod(AbstractBody):
         out = self.outputs(None, {"theta": theta, "theta_dot": theta_dot}, (), False)
         return out["normal_force"]
 
-
-def _none_if_inf(x) -> float | None:
-    x = float(x)
-    return None if not np.isfinite(x) else x

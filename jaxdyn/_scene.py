@@ -25,7 +25,7 @@ class Scene(eqx.Module):
 
     Everything built on scenes (simulation, accuracy studies, identification, separatrices,
     ensembles) uses only this protocol: `state`, `vector_field`, `invariants`, `conserved`,
-    `outputs`, `events`, `parameters`, `replace`, `check` and `report`.
+    `outputs`, `events`, `parameters`, `replace`, `check` and `summary`.
 
     **Arguments:**
 
@@ -219,21 +219,17 @@ class Scene(eqx.Module):
 
     # -- reporting ------------------------------------------------------------------------------
 
-    def report(self, ts, ys: State, t_final, y_final: State, event: Mapping) -> dict[str, Any]:
-        """JSON-ready summary of a run: the body's own keys and the relative drift of each
-        conserved invariant over the saved samples."""
-        import numpy as np
-
-        out = dict(self.body.report(ts, ys, t_final, y_final, event))
-        valid = np.isfinite(np.asarray(ts))
+    def summary(self, ts, ys: State, valid, t_final, y_final: State,
+                event: Mapping[str, Array]) -> dict[str, Any]:
+        """Summary of a run as arrays: the body's own keys, and the largest relative drift of
+        each conserved invariant over the valid samples (`<name>_rel_error`)."""
+        out = dict(self.body.summary(ts, ys, valid, t_final, y_final, event))
         inv = jax.vmap(self.invariants)(ts, ys)
         for name in self.conserved:
-            if name == "momentum_inertial":
-                v = np.asarray(inv[name])[valid]
-                scale = np.linalg.norm(v[0])
-                err = np.max(np.linalg.norm(v - v[0], axis=-1)) / scale
+            v = inv[name]
+            if v.ndim == 1:
+                drift, scale = jnp.abs(v - v[0]), jnp.abs(v[0])
             else:
-                v = np.asarray(inv[name])[valid]
-                err = float(np.max(np.abs(v - v[0])) / np.abs(v[0]))
-            out[f"{name}_rel_error"] = float(err)
+                drift, scale = jnp.linalg.norm(v - v[0], axis=-1), jnp.linalg.norm(v[0])
+            out[f"{name}_rel_error"] = jnp.max(jnp.where(valid, drift, 0.0)) / scale
         return out

@@ -44,9 +44,9 @@ class Trajectory(eqx.Module):
     def resample(self, num: int) -> "Trajectory":
         """The same run saved at `num` evenly spaced times from its start to its end (the event
         time if one ended it), from the dense output."""
-        t0 = self.interpolation.t0 if self.interpolation is not None else self.ts[0]
-        ts = jnp.linspace(t0, self.t_final, num)
-        return eqx.tree_at(lambda tr: (tr.ts, tr.ys), self, (ts, self.evaluate(ts)))
+        if self.interpolation is None:
+            raise ParameterError("resample needs the dense output: simulate(..., dense=True)")
+        return _resample(self, num)
 
     @property
     def valid(self) -> Bool[Array, " times"]:
@@ -73,9 +73,9 @@ class Trajectory(eqx.Module):
         return jnp.any(jnp.stack(flags)) if flags else jnp.asarray(False)
 
     def report(self) -> dict[str, Any]:
-        """JSON-ready summary (see `Scene.report`)."""
-        event = {k: bool(v) for k, v in self.event.items()}
-        return self.scene.report(self.ts, self.ys, self.t_final, self.y_final, event)
+        """JSON-ready summary of the run (see `Scene.summary`): plain Python numbers and lists,
+        with `None` for values that do not exist for this run."""
+        return jax.tree.map(_to_python, _summary(self))
 
     def __getattr__(self, name: str):
         if name.startswith("_"):
@@ -86,6 +86,28 @@ class Trajectory(eqx.Module):
         raise AttributeError(
             f"Trajectory has no attribute {name!r}; derived outputs of this scene: {list(names)}"
         )
+
+
+@eqx.filter_jit
+def _summary(traj: Trajectory) -> dict[str, Any]:
+    return traj.scene.summary(traj.ts, traj.ys, traj.valid, traj.t_final, traj.y_final,
+                              traj.event)
+
+
+def _to_python(x):
+    a = np.asarray(x)
+    if a.ndim == 0:
+        v = a.item()
+        return v if not isinstance(v, float) or np.isfinite(v) else None
+    return [_to_python(v) for v in a]
+
+
+@eqx.filter_jit
+def _resample(traj: Trajectory, num: int) -> Trajectory:
+    t0 = traj.interpolation.t0
+    ts = jnp.linspace(t0, traj.t_final, num)
+    ys = jax.vmap(traj.interpolation.evaluate)(ts)
+    return eqx.tree_at(lambda tr: (tr.ts, tr.ys), traj, (ts, ys))
 
 
 @eqx.filter_jit
