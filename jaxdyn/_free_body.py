@@ -14,6 +14,7 @@ computing `H^2` and `2 T I_k` separately; in particular the complementary parame
 
 from typing import NamedTuple
 
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
@@ -93,6 +94,7 @@ def _setup(inertia, omega0) -> _Setup:
     )
 
 
+@jax.jit
 def torque_free_omega(
     inertia: Float[ArrayLike, "3"], omega0: Float[ArrayLike, "3"], t: Float[ArrayLike, "*times"]
 ) -> Float[Array, "*times 3"]:
@@ -125,6 +127,7 @@ def torque_free_omega(
     return out
 
 
+@jax.jit
 def torque_free_period(
     inertia: Float[ArrayLike, "3"], omega0: Float[ArrayLike, "3"]
 ) -> Float[Array, ""]:
@@ -133,6 +136,7 @@ def torque_free_period(
     return 4 * ellipk(p.m, p.m1) / p.lam
 
 
+@jax.jit
 def elliptic_parameter(
     inertia: Float[ArrayLike, "3"], omega0: Float[ArrayLike, "3"]
 ) -> tuple[Float[Array, ""], Float[Array, ""]]:

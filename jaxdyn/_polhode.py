@@ -1,11 +1,15 @@
 """Polhodes and the separatrix of the torque-free body, for plotting and classification."""
 
+import functools
+
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from ._free_body import torque_free_omega, torque_free_period
 
 
+@jax.jit
 def separatrix_condition(
     inertia: Float[ArrayLike, "3"], omega: Float[ArrayLike, "... 3"]
 ) -> Float[Array, "..."]:
@@ -20,6 +24,7 @@ def separatrix_condition(
     return jnp.sum(inertia * (inertia - i2) * omega**2, axis=-1)
 
 
+@functools.partial(jax.jit, static_argnames="num")
 def polhode(
     inertia: Float[ArrayLike, "3"], omega0: Float[ArrayLike, "3"], num: int = 200
 ) -> Float[Array, "num 3"]:
@@ -40,6 +45,7 @@ def polhode(
     return torque_free_omega(inertia, omega0, t)
 
 
+@functools.partial(jax.jit, static_argnames="num")
 def separatrix_curves(
     inertia: Float[ArrayLike, "3"], momentum: float = 1.0, num: int = 101
 ) -> Float[Array, "4 num 3"]:

@@ -2,6 +2,7 @@
 
 from typing import Any, ClassVar
 
+import equinox as eqx
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
@@ -166,6 +167,7 @@ class RigidBody(AbstractBody):
 
     # -- analytic companion ---------------------------------------------------------------------
 
+    @eqx.filter_jit
     def exact_omega(self, omega0: Float[ArrayLike, "3"], t: Float[ArrayLike, "..."]):
         """Body rates of the torque-free body at times `t`, from the Jacobi-elliptic solution.
 

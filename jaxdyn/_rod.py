@@ -10,6 +10,7 @@ $$\ddot\theta = \frac{3 \sin\theta\,(2 g - L \dot\theta^2 \cos\theta)}{L (1 + 3\
 
 from typing import Any, ClassVar
 
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
@@ -159,6 +160,7 @@ class FallingRod(AbstractBody):
 
     # -- analytic companions --------------------------------------------------------------------
 
+    @eqx.filter_jit
     def rate(self, theta: ArrayLike, theta0: ArrayLike, theta_dot0: ArrayLike = 0.0) -> Array:
         r"""`|theta_dot|` at angle `theta` from the energy integral, starting at
         `(theta0, theta_dot0)`.
@@ -179,6 +181,7 @@ class FallingRod(AbstractBody):
         safe = jnp.where(num > 0, num, 1.0)
         return jnp.where(num > 0, jnp.sqrt(safe / (1 + 3 * jnp.sin(theta) ** 2)), 0.0)
 
+    @eqx.filter_jit
     def fall_time(self, theta0: ArrayLike, theta_dot0: ArrayLike = 0.0) -> Array:
         """Time for the rod to lie flat, by quadrature of the energy integral.
 
@@ -233,6 +236,7 @@ class FallingRod(AbstractBody):
         diverges = never | (rising & ~low_ok)
         return jnp.where(diverges, jnp.inf, total)
 
+    @eqx.filter_jit
     def normal_force_energy(self, theta: ArrayLike, theta0: ArrayLike,
                             theta_dot0: ArrayLike = 0.0) -> Array:
         """Normal force along the fall as a function of the angle, from the energy integral."""
