@@ -5,6 +5,7 @@ from collections.abc import Callable, Mapping
 from typing import Any, ClassVar
 
 import equinox as eqx
+import jax.numpy as jnp
 from jaxtyping import Array
 
 from ._custom_types import Scalar, State
@@ -47,8 +48,17 @@ class AbstractBody(eqx.Module):
         """Validity conditions on the parameters."""
 
     def events(self) -> Mapping[str, Callable[[Scalar, State], Scalar]]:
-        """Terminating events: name -> function of `(t, y)` whose sign change ends the run."""
+        """Terminating events: name -> function of `(t, y)`, positive while the run goes on.
+
+        The run ends where one reaches zero (located by root finding); one that is already
+        zero or negative at the start ends the run at once.
+        """
         return {}
+
+    def invariant_scale(self, name: str, value: Array) -> Array:
+        """Scale against which the drift of invariant `name` is measured (default: its
+        initial magnitude). Bodies override it where that can vanish."""
+        return jnp.abs(value)
 
     def summary(self, ts, ys: State, valid, t_final, y_final: State,
                 event: Mapping[str, Array]) -> dict[str, Any]:

@@ -48,7 +48,7 @@ def _runtime_message(error: RuntimeError) -> str:
     match = re.search(r"EquinoxRuntimeError: (.*)", text)
     line = match.group(1) if match else next(
         (ln.strip() for ln in text.splitlines() if ln.strip()), type(error).__name__)
-    return line.replace("`max_steps`", "--max-steps")
+    return line.replace("`max_steps`", "--max-steps").replace("max_steps", "--max-steps")
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -228,8 +228,10 @@ class Scene(eqx.Module):
         for name in self.conserved:
             v = inv[name]
             if v.ndim == 1:
-                drift, scale = jnp.abs(v - v[0]), jnp.abs(v[0])
+                drift = jnp.abs(v - v[0])
+                scale = self.body.invariant_scale(name, v[0])
             else:
-                drift, scale = jnp.linalg.norm(v - v[0], axis=-1), jnp.linalg.norm(v[0])
+                drift = jnp.linalg.norm(v - v[0], axis=-1)
+                scale = self.body.invariant_scale(name, jnp.linalg.norm(v[0]))
             out[f"{name}_rel_error"] = jnp.max(jnp.where(valid, drift, 0.0)) / scale
         return out

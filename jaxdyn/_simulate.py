@@ -115,6 +115,39 @@ def _outputs(scene: Scene, ts, ys) -> dict[str, Array]:
     return jax.vmap(scene.outputs)(ts, ys)
 
 
+_FAILURES = (
+    ("max_steps_reached",
+     "the step budget `max_steps` ran out before t1: increase max_steps or loosen rtol/atol; "
+     "if the steps became tiny the problem may be stiff: use an implicit solver such as "
+     "diffrax.Kvaerno5()"),
+    ("dt_min_reached",
+     "the step size fell below its minimum: the solution may be singular or the problem stiff: "
+     "use an implicit solver such as diffrax.Kvaerno5(), or loosen rtol/atol"),
+    ("nonlinear_max_steps_reached",
+     "the implicit solver's nonlinear iteration did not converge: tighten rtol/atol (smaller "
+     "steps) or give the solver a more robust root finder"),
+    ("singular",
+     "a linear solve in the implicit solver was singular: use an explicit solver or smaller steps"),
+    ("breakdown", "the implicit solver broke down: use smaller steps or another solver"),
+)
+
+
+def _check_result(sol, y_final):
+    """Turn solver failures into runtime errors that name the cause and what to change."""
+    ok = (sol.result == dfx.RESULTS.successful) | (sol.result == dfx.RESULTS.event_occurred)
+    flags = [sol.result == getattr(dfx.RESULTS, name) for name, _ in _FAILURES]
+    finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x))
+                                for x in jax.tree_util.tree_leaves(y_final)]))
+    flags += [ok & ~finite, ~ok]
+    msgs = [m for _, m in _FAILURES] + [
+        "the state became non-finite (NaN or inf): check the parameters and initial state",
+        "the solver failed",
+    ]
+    return eqx.branched_error_if(
+        y_final, jnp.any(jnp.stack(flags)), jnp.argmax(jnp.stack(flags)), msgs
+    )
+
+
 def _event(scene: Scene, dtype) -> dfx.Event | None:
     fns = scene.events()
     if not fns:
@@ -208,6 +241,13 @@ def simulate(
         for name, value in (("rtol", rtol), ("atol", atol)):
             if not (np.isfinite(value) and value > 0):
                 raise ParameterError(f"{name}={value!r}: must be positive and finite")
+        eps = float(jnp.finfo(dtype).eps)
+        if rtol < 10 * eps:
+            raise ParameterError(
+                f"rtol={rtol:g}: below what {jnp.dtype(dtype).name} can reach (eps = {eps:.2g});"
+                f" use rtol >= {10 * eps:.2g}, or float64 "
+                "(jax.config.update('jax_enable_x64', True))"
+            )
         stepsize_controller = dfx.PIDController(
             rtol=jnp.asarray(rtol, dtype), atol=jnp.asarray(atol, dtype)
         )
@@ -251,21 +291,28 @@ def _simulate(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps, adjo
         adjoint=adjoint,
         event=event,
         progress_meter=meter,
+        throw=False,
     )
     (ts_saved, t_end), (ys_saved, y_end) = sol.ts, sol.ys
     if ts is None:
         ts_saved = jnp.concatenate([ts_saved, t_end])
         ys_saved = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), ys_saved, y_end)
-    if event is None:
-        fired = {}
-    else:
-        fired = dict(sol.event_mask)
+    fired = {} if event is None else dict(sol.event_mask)
+    y_final = _check_result(sol, jax.tree.map(lambda a: a[0], y_end))
+    t_final = t_end[0]
+    if event is not None:
+        # A terminating event already reached at the start ends the run there.
+        at_start = {name: f(t0, y0) <= 0 for name, f in scene.events().items()}
+        started = jnp.any(jnp.stack(list(at_start.values())))
+        fired = {name: fired[name] | at_start[name] for name in fired}
+        t_final = jnp.where(started, t0, t_final)
+        y_final = jax.tree.map(lambda a, b: jnp.where(started, a, b), y0, y_final)
     return Trajectory(
         scene=scene,
         ts=ts_saved,
         ys=ys_saved,
-        t_final=t_end[0],
-        y_final=jax.tree.map(lambda a: a[0], y_end),
+        t_final=t_final,
+        y_final=y_final,
         event=fired,
         result=sol.result,
         stats=dict(sol.stats),

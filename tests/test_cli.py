@@ -166,5 +166,6 @@ def test_console_script_fails_cleanly_without_traceback():
 def test_step_budget_exhaustion_is_an_error_not_a_truncation(capsys):
     status, out, err = run_cli(capsys, "run", "torque-free", "--max-steps", "20")
     assert status == 1 and out == ""
-    assert err.strip() == ("jaxdyn: error: simulation failed: The maximum number of solver "
-                           "steps was reached. Try increasing --max-steps.")
+    assert err.startswith("jaxdyn: error: simulation failed: the step budget --max-steps ran "
+                          "out before t1: increase --max-steps")
+    assert len(err.strip().splitlines()) == 1
