@@ -63,3 +63,10 @@ from ._simulate import Trajectory as Trajectory, simulate as simulate
 from ._validation import ParameterError as ParameterError
 
 __version__ = "0.1.0"
+from ._separatrix import (
+    Equilibria as Equilibria,
+    Separatrices as Separatrices,
+    critical_rotor_momenta as critical_rotor_momenta,
+    find_equilibria as find_equilibria,
+    trace_separatrices as trace_separatrices,
+)

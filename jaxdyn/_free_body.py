@@ -45,15 +45,20 @@ def _safe_div(a, b):
     return jnp.where(ok, a / jnp.where(ok, b, 1.0), 0.0)
 
 
-def _setup(inertia, omega0) -> _Setup:
+def _sorted(inertia, omega0):
+    """Moments in ascending order and the rates in that frame, by a proper rotation (an odd
+    permutation of axes also flips every rate's sign, which keeps Euler's equations)."""
     inertia = jnp.asarray(inertia)
     dtype = inertia.dtype
     omega0 = jnp.asarray(omega0, dtype)
-    # Ascending order by a proper rotation: an odd permutation also flips every rate's sign.
     perm = jnp.argsort(inertia)
     parity = jnp.round(jnp.linalg.det(jnp.eye(3, dtype=dtype)[perm]))
-    moments = inertia[perm]
-    omega = parity * omega0[perm]
+    return inertia[perm], parity * omega0[perm], perm, parity
+
+
+def _setup(moments, omega, perm, parity) -> _Setup:
+    """Parameters of the elliptic solution, from ascending moments (three distinct)."""
+    dtype = moments.dtype
     # Below the separatrix (H^2 < 2 T I2) the body spins about the minor axis: reverse the order
     # (an odd permutation again, so negate) so that the spin axis is axis 3.
     reverse = _d(moments, omega, 1) < 0
@@ -85,13 +90,35 @@ def _setup(inertia, omega0) -> _Setup:
     c, s = x / r, y / r
     at_saddle = (m1 == 0) & (c == 0)  # exactly at the intermediate-axis equilibrium
     rf = carlson_rf(c**2, jnp.where(at_saddle, 1.0, m1 + m * c**2), jnp.ones_like(c))
-    # At the saddle itself (a pure spin about the intermediate axis) u0 would be infinite: the
-    # state is an equilibrium, handled in `torque_free_omega` with a finite placeholder phase.
     u0 = jnp.where(moving & ~at_saddle, s * rf, 0.0)
     return _Setup(
         moments, omega, perm, sign, jnp.stack([a1, a2, a3]),
         jnp.stack([s1, sigma * s1 * s3, s3]), m, m1, lam, u0, at_saddle,
     )
+
+
+def _axisymmetric(moments, omega, t):
+    """Two equal moments (ascending frame): the rate about the symmetry axis `a` is constant
+    and the transverse rates rotate at `Omega = (I_a - I_t) / I_t w_a` (a sphere: constant)."""
+    a = jnp.where(moments[0] == moments[1], 2, 0)
+    b, c = (a + 1) % 3, (a + 2) % 3
+    i_t = moments[b]
+    angle = (moments[a] - i_t) / i_t * omega[a] * t
+    cos, sin = jnp.cos(angle), jnp.sin(angle)
+    wb = omega[b] * cos - omega[c] * sin
+    wc = omega[b] * sin + omega[c] * cos
+    w = jnp.zeros(t.shape + (3,), moments.dtype)
+    return w.at[..., a].set(omega[a] * jnp.ones_like(t)).at[..., b].set(wb).at[..., c].set(wc)
+
+
+def _equilibrium(moments, omega, t):
+    """A spin about a principal axis (or rest): constant in value; the derivative with respect
+    to the initial rates is the linearised flow `expm(J t)` (growing for the intermediate axis)."""
+    jac = jax.jacfwd(lambda w: jnp.cross(moments * w, w) / moments)(omega)
+    flow = jax.vmap(lambda tt: jax.scipy.linalg.expm(jac * tt))(t.reshape(-1))
+    delta = omega - jax.lax.stop_gradient(omega)  # zero in value, carries the tangent
+    w = jax.lax.stop_gradient(omega) + flow @ delta
+    return w.reshape(t.shape + (3,))
 
 
 @jax.jit
@@ -116,15 +143,31 @@ def torque_free_omega(
 
     Reference: Landau & Lifshitz, *Mechanics*, section 37.
     """
-    p = _setup(inertia, omega0)
-    t = jnp.asarray(t, p.moments.dtype)
+    moments, omega, perm, parity = _sorted(inertia, omega0)
+    dtype = moments.dtype
+    t = jnp.asarray(t, dtype)
+    equilibrium = jnp.sum(omega != 0) <= 1
+    axisymmetric = (moments[0] == moments[1]) | (moments[1] == moments[2])
+    p = _setup(*_safe_general(moments, omega, equilibrium | axisymmetric), perm, parity)
     u = p.lam * t + p.u0
     sn, cn, dn = ellipj(u, p.m, p.m1)
     w = jnp.stack([cn, sn, dn], axis=-1) * (p.signs * p.amp)
     w = jnp.where(p.at_saddle, p.omega0, w)
-    # Back to the original axes: original[perm] = sign * used.
-    out = jnp.zeros_like(w).at[..., p.perm].set(p.sign * w)
-    return out
+    general = jnp.zeros_like(w).at[..., p.perm].set(p.sign * w)  # original[perm] = sign * used
+    sorted_frame = jnp.where(
+        equilibrium, _equilibrium(moments, omega, t), _axisymmetric(moments, omega, t)
+    )
+    sorted_frame = jnp.zeros_like(sorted_frame).at[..., perm].set(parity * sorted_frame)
+    return jnp.where(equilibrium | axisymmetric, sorted_frame, general)
+
+
+def _safe_general(moments, omega, degenerate):
+    """Inputs for the general branch: where it is not used, a harmless non-degenerate body, so
+    that its square roots and divisions cannot poison gradients through `jnp.where`."""
+    dtype = moments.dtype
+    moments = jnp.where(degenerate, jnp.array([1.0, 2.0, 3.0], dtype), moments)
+    omega = jnp.where(degenerate, jnp.array([0.3, 0.2, 1.0], dtype), omega)
+    return moments, omega
 
 
 @jax.jit
@@ -132,7 +175,7 @@ def torque_free_period(
     inertia: Float[ArrayLike, "3"], omega0: Float[ArrayLike, "3"]
 ) -> Float[Array, ""]:
     """Period of the body rates, `4 K(m) / lam` (infinite on the separatrix)."""
-    p = _setup(inertia, omega0)
+    p = _setup(*_sorted(inertia, omega0))
     return 4 * ellipk(p.m, p.m1) / p.lam
 
 
@@ -141,5 +184,5 @@ def elliptic_parameter(
     inertia: Float[ArrayLike, "3"], omega0: Float[ArrayLike, "3"]
 ) -> tuple[Float[Array, ""], Float[Array, ""]]:
     """The parameter `m` of the elliptic solution and its complement `1 - m` (exact near 1)."""
-    p = _setup(inertia, omega0)
+    p = _setup(*_sorted(inertia, omega0))
     return p.m, p.m1
