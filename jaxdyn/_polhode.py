@@ -4,9 +4,11 @@ import functools
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ._free_body import torque_free_omega, torque_free_period
+from ._validation import ParameterError, format_value, is_concrete
 
 
 @jax.jit
@@ -45,16 +47,28 @@ def polhode(
     return torque_free_omega(inertia, omega0, t)
 
 
-@functools.partial(jax.jit, static_argnames="num")
 def separatrix_curves(
     inertia: Float[ArrayLike, "3"], momentum: float = 1.0, num: int = 101
 ) -> Float[Array, "4 num 3"]:
     """The separatrix on the momentum sphere `|h| = momentum`: four arcs joining the two saddles
     on the intermediate axis, `h1^2 (I2/I1 - 1) + h3^2 (I2/I3 - 1) = 0` (axes as given).
 
-    Requires three distinct moments: with two equal moments there is no intermediate axis.
+    Requires three distinct moments: with two equal moments there is no intermediate axis, and
+    a [`jaxdyn.ParameterError`][] says so.
     """
     inertia = jnp.asarray(inertia)
+    if is_concrete(inertia):
+        moments = np.sort(np.asarray(inertia))
+        if moments[0] == moments[1] or moments[1] == moments[2]:
+            raise ParameterError(
+                f"inertia={format_value(inertia)}: two equal principal moments, so there is no "
+                "intermediate axis and no separatrix (every polhode circles the symmetry axis)"
+            )
+    return _separatrix_curves(inertia, momentum, num)
+
+
+@functools.partial(jax.jit, static_argnames="num")
+def _separatrix_curves(inertia, momentum, num):
     perm = jnp.argsort(inertia)
     i1, i2, i3 = inertia[perm]
     k = jnp.sqrt((i2 / i1 - 1) / (1 - i2 / i3))
