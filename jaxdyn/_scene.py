@@ -211,8 +211,8 @@ class Scene(eqx.Module):
         checks = list(self.body.checks())
         for e in self.effects:
             checks += e.checks()
-        if not checks:
-            return y
+        for name, value in y.items():
+            checks.append((f"y0[{name!r}]", value, ~jnp.isfinite(value), "must be finite"))
         flags = jnp.stack([jnp.any(violated) for _, _, violated, _ in checks])
         msgs = [f"invalid {field}: {allowed}" for field, _, _, allowed in checks]
         return eqx.branched_error_if(y, jnp.any(flags), jnp.argmax(flags), msgs)

@@ -12,7 +12,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ._custom_types import State
 from ._scene import Scene
-from ._validation import ParameterError, as_float_array, is_concrete
+from ._validation import ParameterError, as_float_array, format_value, is_concrete
 
 
 class Trajectory(eqx.Module):
@@ -214,6 +214,9 @@ def simulate(
     if not isinstance(scene, Scene):
         raise ParameterError(f"scene={scene!r}: expected a jaxdyn.Scene")
     y0 = scene.check_state(y0)
+    for name, value in y0.items():
+        if is_concrete(value) and not bool(np.all(np.isfinite(np.asarray(value)))):
+            raise ParameterError(f"y0[{name!r}]={format_value(value)}: must be finite")
     dtype = jnp.result_type(*jax.tree_util.tree_leaves(y0))
     if not jnp.issubdtype(dtype, jnp.floating):
         raise ParameterError(f"y0 has dtype {dtype}: expected floating point")
@@ -242,10 +245,10 @@ def simulate(
             if not (np.isfinite(value) and value > 0):
                 raise ParameterError(f"{name}={value!r}: must be positive and finite")
         eps = float(jnp.finfo(dtype).eps)
-        if rtol < 10 * eps:
+        if rtol < 4 * eps:
             raise ParameterError(
                 f"rtol={rtol:g}: below what {jnp.dtype(dtype).name} can reach (eps = {eps:.2g});"
-                f" use rtol >= {10 * eps:.2g}, or float64 "
+                f" use rtol >= {4 * eps:.2g}, or float64 "
                 "(jax.config.update('jax_enable_x64', True))"
             )
         stepsize_controller = dfx.PIDController(
