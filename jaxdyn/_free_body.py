@@ -121,7 +121,24 @@ def _equilibrium(moments, omega, t):
     return w.reshape(t.shape + (3,))
 
 
-@jax.jit
+def _check(inertia, omega0, t=None):
+    """Eager checks of the closed-form functions' inputs (skipped for traced values)."""
+    from ._inertia import moments_checks
+    from ._validation import ParameterError, as_float_array, raise_if_violated
+
+    inertia = as_float_array("inertia", inertia)
+    if inertia.shape != (3,):
+        raise ParameterError(f"inertia has shape {inertia.shape}: expected 3 principal moments")
+    raise_if_violated(moments_checks("inertia", inertia))
+    omega0 = as_float_array("omega0", omega0, (3,), inertia.dtype)
+    raise_if_violated([("omega0", omega0, ~jnp.isfinite(omega0), "must be finite")])
+    if t is None:
+        return inertia, omega0
+    t = as_float_array("t", t, None, inertia.dtype)
+    raise_if_violated([("t", t, ~jnp.isfinite(t), "must be finite")])
+    return inertia, omega0, t
+
+
 def torque_free_omega(
     inertia: Float[ArrayLike, "3"], omega0: Float[ArrayLike, "3"], t: Float[ArrayLike, "*times"]
 ) -> Float[Array, "*times 3"]:
@@ -143,6 +160,11 @@ def torque_free_omega(
 
     Reference: Landau & Lifshitz, *Mechanics*, section 37.
     """
+    return _torque_free_omega(*_check(inertia, omega0, t))
+
+
+@jax.jit
+def _torque_free_omega(inertia, omega0, t):
     moments, omega, perm, parity = _sorted(inertia, omega0)
     dtype = moments.dtype
     t = jnp.asarray(t, dtype)
@@ -170,19 +192,27 @@ def _safe_general(moments, omega, degenerate):
     return moments, omega
 
 
-@jax.jit
 def torque_free_period(
     inertia: Float[ArrayLike, "3"], omega0: Float[ArrayLike, "3"]
 ) -> Float[Array, ""]:
     """Period of the body rates, `4 K(m) / lam` (infinite on the separatrix)."""
+    return _torque_free_period(*_check(inertia, omega0))
+
+
+@jax.jit
+def _torque_free_period(inertia, omega0):
     p = _setup(*_sorted(inertia, omega0))
     return 4 * ellipk(p.m, p.m1) / p.lam
 
 
-@jax.jit
 def elliptic_parameter(
     inertia: Float[ArrayLike, "3"], omega0: Float[ArrayLike, "3"]
 ) -> tuple[Float[Array, ""], Float[Array, ""]]:
     """The parameter `m` of the elliptic solution and its complement `1 - m` (exact near 1)."""
+    return _elliptic_parameter(*_check(inertia, omega0))
+
+
+@jax.jit
+def _elliptic_parameter(inertia, omega0):
     p = _setup(*_sorted(inertia, omega0))
     return p.m, p.m1

@@ -7,11 +7,10 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
-from ._free_body import torque_free_omega, torque_free_period
+from ._free_body import _check, torque_free_omega, torque_free_period
 from ._validation import ParameterError, format_value, is_concrete
 
 
-@jax.jit
 def separatrix_condition(
     inertia: Float[ArrayLike, "3"], omega: Float[ArrayLike, "... 3"]
 ) -> Float[Array, "..."]:
@@ -20,13 +19,17 @@ def separatrix_condition(
     Zero on the separatrix, positive for rotation about the major axis, negative about the minor
     axis. Computed as `sum_i I_i (I_i - I_2) w_i^2`, so that it is accurate close to zero.
     """
-    inertia = jnp.asarray(inertia)
+    inertia, _ = _check(inertia, jnp.zeros(3))
+    return _separatrix_condition(inertia, omega)
+
+
+@jax.jit
+def _separatrix_condition(inertia, omega):
     omega = jnp.asarray(omega, inertia.dtype)
     i2 = jnp.sort(inertia)[1]
     return jnp.sum(inertia * (inertia - i2) * omega**2, axis=-1)
 
 
-@functools.partial(jax.jit, static_argnames="num")
 def polhode(
     inertia: Float[ArrayLike, "3"], omega0: Float[ArrayLike, "3"], num: int = 200
 ) -> Float[Array, "num 3"]:
@@ -36,7 +39,13 @@ def polhode(
     separatrix, where the period is infinite, returns the homoclinic orbit over `[-T, T]` with
     `T` long enough to come within `1e-6` of the saddles.
     """
-    inertia = jnp.asarray(inertia)
+    if not isinstance(num, int) or num < 2:
+        raise ParameterError(f"num={num!r}: must be an integer >= 2")
+    return _polhode(*_check(inertia, omega0), num)
+
+
+@functools.partial(jax.jit, static_argnames="num")
+def _polhode(inertia, omega0, num):
     period = torque_free_period(inertia, omega0)
     finite = jnp.isfinite(period)
     # On the separatrix: from about -20/lam to 20/lam (sech(20) ~ 4e-9).
@@ -56,7 +65,9 @@ def separatrix_curves(
     Requires three distinct moments: with two equal moments there is no intermediate axis, and
     a [`jaxdyn.ParameterError`][] says so.
     """
-    inertia = jnp.asarray(inertia)
+    inertia, _ = _check(inertia, jnp.zeros(3))
+    if not isinstance(num, int) or num < 2:
+        raise ParameterError(f"num={num!r}: must be an integer >= 2")
     if is_concrete(inertia):
         moments = np.sort(np.asarray(inertia))
         if moments[0] == moments[1] or moments[1] == moments[2]:

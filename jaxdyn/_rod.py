@@ -157,8 +157,8 @@ class FallingRod(AbstractBody):
             "impact_rate": jnp.where(flat, y_final["theta_dot"], nan),
             "min_normal_force_over_weight": jnp.min(jnp.where(valid, n_over_w, jnp.inf)),
             "reference": {
-                "impact_time": self.fall_time(theta0, theta_dot0),
-                "impact_rate": jnp.sign(y_final["theta"]) * self.rate(
+                "impact_time": self._fall_time(theta0, theta_dot0),
+                "impact_rate": jnp.sign(y_final["theta"]) * self._rate(
                     jnp.pi / 2, theta0, theta_dot0
                 ),
             },
@@ -166,7 +166,19 @@ class FallingRod(AbstractBody):
 
     # -- analytic companions --------------------------------------------------------------------
 
-    @eqx.filter_jit
+    def _check_start(self, theta0, theta_dot0):
+        from ._validation import raise_if_violated
+
+        dtype = self.length.dtype
+        theta0 = as_float_array("theta0", theta0, None, dtype)
+        theta_dot0 = as_float_array("theta_dot0", theta_dot0, None, dtype)
+        raise_if_violated([
+            ("theta0", theta0, ~(jnp.abs(theta0) <= jnp.pi / 2),
+             "must be finite and within [-pi/2, pi/2] (the rod cannot start below the floor)"),
+            ("theta_dot0", theta_dot0, ~jnp.isfinite(theta_dot0), "must be finite"),
+        ])
+        return theta0, theta_dot0
+
     def rate(self, theta: ArrayLike, theta0: ArrayLike, theta_dot0: ArrayLike = 0.0) -> Array:
         r"""`|theta_dot|` at angle `theta` from the energy integral, starting at
         `(theta0, theta_dot0)`.
@@ -177,6 +189,11 @@ class FallingRod(AbstractBody):
         the product form of `12 (cos(theta0) - cos(theta)) / 2`, which keeps every digit when
         `theta0` is tiny. Returns 0 where the energy does not reach `theta`.
         """
+        theta0, theta_dot0 = self._check_start(theta0, theta_dot0)
+        return self._rate(theta, theta0, theta_dot0)
+
+    @eqx.filter_jit
+    def _rate(self, theta, theta0, theta_dot0):
         dtype = self.length.dtype
         theta, theta0, theta_dot0 = (jnp.asarray(x, dtype) for x in (theta, theta0, theta_dot0))
         L, g = self.length, self.g
@@ -187,7 +204,6 @@ class FallingRod(AbstractBody):
         safe = jnp.where(num > 0, num, 1.0)
         return jnp.where(num > 0, jnp.sqrt(safe / (1 + 3 * jnp.sin(theta) ** 2)), 0.0)
 
-    @eqx.filter_jit
     def fall_time(self, theta0: ArrayLike, theta_dot0: ArrayLike = 0.0) -> Array:
         """Time for the rod to lie flat, by quadrature of the energy integral.
 
@@ -203,6 +219,10 @@ class FallingRod(AbstractBody):
         A negative `theta_dot0` (towards upright) is handled: the rod rises, turns back or passes
         over, and falls on the side its energy dictates.
         """
+        return self._fall_time(*self._check_start(theta0, theta_dot0))
+
+    @eqx.filter_jit
+    def _fall_time(self, theta0, theta_dot0):
         dtype = self.length.dtype
         theta0, theta_dot0 = (jnp.asarray(x, dtype) for x in (theta0, theta_dot0))
         L, g = self.length, self.g
@@ -246,12 +266,16 @@ class FallingRod(AbstractBody):
         total = jnp.where(never, upright, total)
         return jnp.where(rising & ~low_ok, jnp.inf, total)
 
-    @eqx.filter_jit
     def normal_force_energy(self, theta: ArrayLike, theta0: ArrayLike,
                             theta_dot0: ArrayLike = 0.0) -> Array:
         """Normal force along the fall as a function of the angle, from the energy integral."""
+        theta0, theta_dot0 = self._check_start(theta0, theta_dot0)
+        return self._normal_force_energy(theta, theta0, theta_dot0)
+
+    @eqx.filter_jit
+    def _normal_force_energy(self, theta, theta0, theta_dot0):
         theta = jnp.asarray(theta, self.length.dtype)
-        theta_dot = self.rate(theta, theta0, theta_dot0)
+        theta_dot = self._rate(theta, theta0, theta_dot0)
         out = self.outputs(None, {"theta": theta, "theta_dot": theta_dot}, (), False)
         return out["normal_force"]
 
