@@ -348,6 +348,7 @@ def case_float32():
     for name, effects, attitude in (
         ("torque-free", (), False),
         ("gyrostat", (jd.Rotor(np.zeros(3, f32)),), False),
+        ("torque", (jd.ExternalTorque(np.zeros(3, f32)),), False),
         ("attitude", (), True),
         ("gravity-gradient", (jd.GravityGradient(f32(1e-6)),), True),
     ):
@@ -368,7 +369,7 @@ def case_float32():
 def test_float32_reach():
     f = case_float32()
     assert f["falling-rod_impact_time_rel_error"] < 1e-5
-    for name in ("torque-free", "gyrostat", "attitude", "gravity-gradient"):
+    for name in ("torque-free", "gyrostat", "torque", "attitude", "gravity-gradient"):
         assert f[f"{name}_omega_error"] < 1e-4
     assert "below what float32 can reach" in f["rtol_1e-10"]
 
