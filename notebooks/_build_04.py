@@ -6,8 +6,7 @@ Written without outputs, with fixed cell ids, the same way `_build.py` builds 01
 
 from pathlib import Path
 
-import nbformat
-from nbformat.v4 import new_code_cell, new_markdown_cell, new_notebook
+from _build import build
 
 HERE = Path(__file__).resolve().parent
 
@@ -455,21 +454,6 @@ for ax in (ax1, ax2):
     ax.legend(loc="upper left", fontsize=9)
 plt.show()"""),
 ]
-
-
-def build(cells, path):
-    nb = new_notebook()
-    nb.metadata["kernelspec"] = {
-        "name": "python3", "display_name": "Python 3", "language": "python",
-    }
-    nb.metadata["language_info"] = {"name": "python"}
-    for k, (kind, source) in enumerate(cells):
-        source = source.strip("\n")
-        cell = new_markdown_cell(source) if kind == "md" else new_code_cell(source)
-        cell.id = f"cell-{k:02d}"
-        nb.cells.append(cell)
-    nbformat.validate(nb)
-    nbformat.write(nb, path)
 
 
 if __name__ == "__main__":

@@ -3,16 +3,15 @@ closed forms for the torque-free body, the gyrostat's equilibrium condition solv
 polynomial with numpy, stability seen in simulations, and the analytic stability condition of a
 spin with a rotor along its axis."""
 
-import json
 
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import test_cli
 from helpers import INTEGRATION, ROUNDOFF, tol
 from numpy.polynomial import polynomial as P
 
 import jaxdyn as jd
-from jaxdyn._cli import main
 
 # The equilibria from numpy's polynomial roots (polished by Newton steps in numpy): a few digits
 # short of round-off, as the rates depend on the root through 1 / (mu - I_i).
@@ -317,18 +316,11 @@ def test_scenes_that_are_not_conservative_rotations_are_refused():
 
 
 def run_cli(capsys, *argv):
-    try:
-        status = main(["separatrix", *argv])
-    except SystemExit as e:
-        status = e.code
-    out, err = capsys.readouterr()
-    return status, out, err
+    return test_cli.run_cli(capsys, "separatrix", *argv)
 
 
 def run_json(capsys, *argv):
-    status, out, err = run_cli(capsys, *argv, "--json")
-    assert status == 0, err
-    return json.loads(out)
+    return test_cli.run_json(capsys, "separatrix", *argv)
 
 
 def test_cli_torque_free(capsys):
