@@ -3,9 +3,12 @@
 from ._body import AbstractBody as AbstractBody
 from ._effect import AbstractEffect as AbstractEffect
 from ._effects import (
+    AttitudeTracking as AttitudeTracking,
     ExternalTorque as ExternalTorque,
     GravityGradient as GravityGradient,
+    RateDamping as RateDamping,
     Rotor as Rotor,
+    Wheels as Wheels,
 )
 from ._elliptic import (
     carlson_rc as carlson_rc,

@@ -45,7 +45,9 @@ class AbstractEffect(eqx.Module):
 
         raise_if_violated(self.checks())
 
-    def initial_state(self, **values: Any) -> State:
+    def initial_state(self, body_state: State, **values: Any) -> State:
+        """The effect's own state from named initial values (the body's state is given, for
+        devices whose state depends on it)."""
         if values:
             from ._validation import ParameterError
 

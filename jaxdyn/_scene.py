@@ -82,10 +82,11 @@ class Scene(eqx.Module):
         """
         body_values = {k: v for k, v in values.items() if "." not in k}
         y = dict(self.body.initial_state(self.attitude, **body_values))
+        body_state = dict(y)
         for label, e in zip(self.labels, self.effects):
             prefix = label + "."
             own = {k[len(prefix):]: v for k, v in values.items() if k.startswith(prefix)}
-            y.update({prefix + k: v for k, v in e.initial_state(**own).items()})
+            y.update({prefix + k: v for k, v in e.initial_state(body_state, **own).items()})
         unknown = [k for k in values if "." in k and k.split(".")[0] not in self.labels]
         if unknown:
             raise ParameterError(

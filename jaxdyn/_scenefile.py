@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from ._custom_types import State
-from ._effects import ExternalTorque, GravityGradient, Rotor
+from ._effects import AttitudeTracking, ExternalTorque, GravityGradient, RateDamping, Rotor, Wheels
 from ._rigid_body import RigidBody
 from ._rod import FallingRod
 from ._scene import Scene
@@ -52,13 +52,63 @@ _BODIES: dict[str, dict[str, Any]] = {
     },
 }
 
+def _build_wheels(control: str = "none", gain=None, kp=None, kd=None, target=None, **kwargs):
+    laws = {
+        "none": lambda: None,
+        "rate-damping": lambda: RateDamping(_need("wheels.gain", gain)),
+        "attitude-tracking": lambda: AttitudeTracking(
+            _need("wheels.target", target), _need("wheels.kp", kp), _need("wheels.kd", kd)
+        ),
+    }
+    if control not in laws:
+        raise ParameterError(f"wheels.control={control!r}: allowed are {sorted(laws)}")
+    law = laws[control]()
+    if law is not None:
+        if "motor" in kwargs:
+            raise ParameterError("wheels.motor: give constant motor torques or a control law, "
+                                 "not both")
+        kwargs["motor"] = law
+    return Wheels(**kwargs)
+
+
+def _build_ring_damper(axis=None, inertia=None, damping=None):
+    return Wheels(axes=[_need("ring-damper.axis", axis)], inertia=[_need("ring-damper.inertia",
+                  inertia)], damping=[_need("ring-damper.damping", damping)])
+
+
+def _need(field: str, value):
+    if value is None:
+        raise ParameterError(f"{field} is required")
+    return value
+
+
 _EFFECTS: dict[str, dict[str, Any]] = {
     "rotor": {"cls": Rotor, "parameters": ("momentum",), "options": {}},
     "torque": {"cls": ExternalTorque, "parameters": ("torque",), "options": {"frame": str}},
     "gravity-gradient": {
         "cls": GravityGradient, "parameters": ("orbit_rate", "phase"), "options": {},
     },
+    # Momentum wheels (reaction wheels, a dual spinner's rotor): initial relative spins `speed`.
+    "wheels": {
+        "cls": _build_wheels,
+        "parameters": ("axes", "inertia", "motor", "max_torque", "max_speed", "damping", "gain",
+                       "kp", "kd", "target"),
+        "options": {"control": str},
+        "initial": ("speed",),
+    },
+    # A viscous ring damper: one wheel without a motor, coupled to the body by viscous friction.
+    "ring-damper": {
+        "cls": _build_ring_damper,
+        "parameters": ("axis", "inertia", "damping"),
+        "options": {},
+        "initial": ("speed",),
+    },
 }
+
+def _effect_keys(etype: str) -> set[str]:
+    spec = _EFFECTS[etype]
+    return set(spec["parameters"]) | set(spec["options"]) | set(spec.get("initial", ()))
+
 
 _TOP_KEYS = {"description", "body", "t1", "rtol", "atol", "parameters", "effects"}
 _RUN_KEYS = ("t1", "rtol", "atol")
@@ -184,7 +234,7 @@ def load_scene(name_or_path: str, overrides: Mapping[str, Any] | None = None) ->
         etype = e.get("type")
         if etype not in _EFFECTS:
             raise ParameterError(f"effects[{i}].type={etype!r}: allowed are {sorted(_EFFECTS)}")
-        eallowed = set(_EFFECTS[etype]["parameters"]) | set(_EFFECTS[etype]["options"])
+        eallowed = _effect_keys(etype)
         for key, value in e.items():
             if key == "type":
                 continue
@@ -205,7 +255,7 @@ def load_scene(name_or_path: str, overrides: Mapping[str, Any] | None = None) ->
                     f"{effect_specs}"
                 )
             sub = key.split(".", 1)[1]
-            eallowed = set(_EFFECTS[etype]["parameters"]) | set(_EFFECTS[etype]["options"])
+            eallowed = _effect_keys(etype)
             if sub not in eallowed:
                 raise ParameterError(
                     f"unknown parameter {key!r}: allowed for {etype!r} are "
@@ -255,6 +305,9 @@ def load_scene(name_or_path: str, overrides: Mapping[str, Any] | None = None) ->
         espec = _EFFECTS[etype]
         kwargs = {k: values[f"{etype}.{k}"] for k in (*espec["parameters"], *espec["options"])
                   if f"{etype}.{k}" in values}
+        if len(set(effect_specs)) != len(effect_specs):
+            raise ParameterError(f"effects: {effect_specs}: each effect type may appear once "
+                                 "in a scene file")
         try:
             effect_objs.append(espec["cls"](**kwargs))
         except TypeError as err:
@@ -262,6 +315,10 @@ def load_scene(name_or_path: str, overrides: Mapping[str, Any] | None = None) ->
     scene = Scene(body, tuple(effect_objs), attitude=bool(values.get("attitude", False))
                   or "quaternion0" in values)
     initial = {key: state for key, state in spec["initial"].items() if key in values}
+    for label, etype in zip(scene.labels, effect_specs):
+        for key in _EFFECTS[etype].get("initial", ()):
+            if f"{etype}.{key}" in values:
+                initial[f"{etype}.{key}"] = f"{label}.{key}"
     try:
         y0 = scene.state(**{state: values[key] for key, state in initial.items()})
     except ParameterError as e:

@@ -1,0 +1,242 @@
+r"""Momentum wheels: reaction wheels, a dual spinner's rotor, a viscous ring damper.
+
+Each wheel `i` spins about a fixed unit axis `g_i` in the body, with axial moment `J_i`. Its state
+is its absolute axial angular momentum `h_i = J_i (Omega_i + g_i . w)`, where `Omega_i` is its spin
+relative to the body; an axisymmetric wheel's `h_i` changes only by the torque `u_i` applied to it
+about its axis (the motor torque, minus viscous friction). With `I` the body's inertia including
+every wheel's transverse inertia but NOT its axial inertia `J_i`, the body obeys
+
+$$I \dot w = (I w + \textstyle\sum_i h_i g_i) \times w - \sum_i u_i g_i + \tau_{ext},
+\qquad \dot h_i = u_i,$$
+
+the total angular momentum `I w + sum h_i g_i` is conserved under internal torques, and the kinetic
+energy `w.I w / 2 + sum h_i^2 / (2 J_i)` changes at the rate `sum u_i Omega_i` (motor power minus
+viscous loss). Reference: Schaub & Junkins, *Analytical Mechanics of Space Systems*, ch. 4.
+"""
+
+from collections.abc import Callable
+from typing import Any
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, ArrayLike, Float
+
+from .._effect import AbstractEffect
+from .._validation import Check, ParameterError, as_float_array, finite_check, positive_check
+
+
+class Wheels(AbstractEffect):
+    """Momentum wheels with optional motors, limits and viscous damping.
+
+    **Arguments:**
+
+    - `axes`: `(N, 3)` spin axes in the body frame (normalised here).
+    - `inertia`: `(N,)` axial moments of inertia `J_i` (kg m^2). The body's inertia must exclude
+      them (it includes the wheels' transverse inertia).
+    - `motor`: motor torques on the wheels (N m): `None` (free wheels), `(N,)` constants, or a
+      control law `(t, y, wheels) -> (N,)` (an `eqx.Module` such as [`jaxdyn.RateDamping`][] or
+      [`jaxdyn.AttitudeTracking`][] to keep its gains differentiable).
+    - `max_torque`: `(N,)` motor torque limits (commands are clipped), or `None`.
+    - `max_speed`: `(N,)` relative spin limits (rad/s): a motor at its limit cannot drive the wheel
+      faster (it may still slow it; the cut-off fades in over the last 1%), or `None`.
+    - `damping`: `(N,)` viscous coefficients `c_i` (N m s) between wheel and body, or `None`. A
+      wheel with damping and no motor is a viscous ring damper, an energy sink.
+
+    State: `momentum` (`h_i`), and `work` (the motor work) when there are motors, `dissipated`
+    (the viscous loss) when there is damping. Initial values: `speed` (relative spins `Omega_i`,
+    default 0).
+    """
+
+    axes: Float[Array, "N 3"]
+    inertia: Float[Array, " N"]
+    motor: Any
+    max_torque: Float[Array, " N"] | None
+    max_speed: Float[Array, " N"] | None
+    damping: Float[Array, " N"] | None
+
+    kind = "wheels"
+    parameter_names = ("axes", "inertia", "max_torque", "max_speed", "damping")
+
+    def __init__(
+        self,
+        axes: Float[ArrayLike, "N 3"],
+        inertia: Float[ArrayLike, " N"],
+        motor: Float[ArrayLike, " N"] | Callable | None = None,
+        max_torque: Float[ArrayLike, " N"] | None = None,
+        max_speed: Float[ArrayLike, " N"] | None = None,
+        damping: Float[ArrayLike, " N"] | None = None,
+    ):
+        axes = as_float_array("wheels.axes", axes)
+        if axes.ndim == 1:
+            axes = axes[None]
+        if axes.ndim != 2 or axes.shape[1] != 3:
+            raise ParameterError(f"wheels.axes has shape {axes.shape}: expected (N, 3)")
+        n = axes.shape[0]
+        dtype = axes.dtype
+        self.axes = axes / jnp.linalg.norm(axes, axis=1, keepdims=True)
+
+        def vector(name, value):
+            if value is None:
+                return None
+            arr = as_float_array(f"wheels.{name}", value, None, dtype)
+            arr = jnp.broadcast_to(arr, (n,)) if arr.ndim == 0 else arr
+            if arr.shape != (n,):
+                raise ParameterError(f"wheels.{name} has shape {arr.shape}: expected ({n},)")
+            return arr
+
+        self.inertia = vector("inertia", inertia)
+        self.motor = motor if (motor is None or callable(motor)) else vector("motor", motor)
+        self.max_torque = vector("max_torque", max_torque)
+        self.max_speed = vector("max_speed", max_speed)
+        self.damping = vector("damping", damping)
+
+    @property
+    def size(self) -> int:
+        return self.axes.shape[0]
+
+    @property
+    def conserves(self) -> frozenset[str]:  # type: ignore[override]
+        if self.motor is None and self.damping is None:
+            return frozenset({"energy", "momentum"})
+        return frozenset({"momentum"})
+
+    def constructor_args(self) -> dict[str, Any]:
+        return {"axes": self.axes, "inertia": self.inertia, "motor": self.motor,
+                "max_torque": self.max_torque, "max_speed": self.max_speed,
+                "damping": self.damping}
+
+    def parameters(self) -> dict[str, Any]:
+        return {k: v for k, v in self.constructor_args().items()
+                if k in self.parameter_names and v is not None}
+
+    def checks(self) -> list[Check]:
+        checks = [finite_check("wheels.axes", self.axes),
+                  positive_check("wheels.inertia", self.inertia)]
+        for name in ("max_torque", "max_speed"):
+            value = getattr(self, name)
+            if value is not None:
+                checks.append(positive_check(f"wheels.{name}", value))
+        if self.damping is not None:
+            checks.append(("wheels.damping", self.damping,
+                           ~(jnp.isfinite(self.damping) & (self.damping >= 0)),
+                           "must be non-negative and finite"))
+        if self.motor is not None and not callable(self.motor):
+            checks.append(finite_check("wheels.motor", self.motor))
+        return checks
+
+    # -- state ----------------------------------------------------------------------------------
+
+    def initial_state(self, body_state, speed: Any = 0.0, **unknown: Any):
+        if unknown:
+            raise ParameterError(
+                f"unknown initial values {sorted(unknown)} for wheels: allowed is speed"
+            )
+        omega = body_state["omega"]
+        speed = as_float_array("wheels.speed", speed, None, omega.dtype)
+        speed = jnp.broadcast_to(speed, (self.size,)) if speed.ndim == 0 else speed
+        if speed.shape != (self.size,):
+            raise ParameterError(f"wheels.speed has shape {speed.shape}: expected ({self.size},)")
+        y = {"momentum": self.inertia * (speed + self.axes @ omega)}
+        if self.motor is not None:
+            y["work"] = jnp.zeros((), omega.dtype)
+        if self.damping is not None:
+            y["dissipated"] = jnp.zeros((), omega.dtype)
+        return y
+
+    def speed(self, y, own) -> Float[Array, " N"]:
+        """Wheel spins relative to the body, `Omega_i = h_i / J_i - g_i . w`."""
+        return own["momentum"] / self.inertia - self.axes @ y["omega"]
+
+    def motor_torque(self, t, y, own) -> Float[Array, " N"] | None:
+        """Motor torques after the torque and speed limits (`None` without motors)."""
+        if self.motor is None:
+            return None
+        u = self.motor(t, y, self) if callable(self.motor) else self.motor
+        u = jnp.asarray(u, y["omega"].dtype)
+        if self.max_torque is not None:
+            u = jnp.clip(u, -self.max_torque, self.max_torque)
+        if self.max_speed is not None:
+            # Within 1% of the limit, torque that would speed the wheel up fades linearly to
+            # zero: a continuous limiter, so adaptive steps do not chatter at the limit.
+            speed = self.speed(y, own)
+            room = jnp.clip((self.max_speed - jnp.abs(speed)) / (0.01 * self.max_speed), 0, 1)
+            u = jnp.where(u * speed > 0, u * room, u)
+        return u
+
+    def _axial_torque(self, t, y, own) -> Float[Array, " N"]:
+        u = self.motor_torque(t, y, own)
+        total = jnp.zeros_like(own["momentum"]) if u is None else u
+        if self.damping is not None:
+            total = total - self.damping * self.speed(y, own)
+        return total
+
+    def state_derivative(self, t, y, own, body):
+        dy = {"momentum": self._axial_torque(t, y, own)}
+        if self.motor is not None:
+            dy["work"] = jnp.dot(self.motor_torque(t, y, own), self.speed(y, own))
+        if self.damping is not None:
+            dy["dissipated"] = jnp.dot(self.damping, self.speed(y, own) ** 2)
+        return dy
+
+    def momentum(self, t, y, own, body) -> Array:
+        return own["momentum"] @ self.axes
+
+    def momentum_rate(self, t, y, own, body) -> Array | None:
+        if self.motor is None and self.damping is None:
+            return None
+        return self._axial_torque(t, y, own) @ self.axes
+
+    def energy(self, t, y, own, body) -> Array:
+        return 0.5 * jnp.sum(own["momentum"] ** 2 / self.inertia)
+
+
+class RateDamping(eqx.Module):
+    """Control law for [`jaxdyn.Wheels`][]: the wheels apply the body torque `-gain w`
+    (least-squares allocation over the wheel axes). Detumbles a body."""
+
+    gain: Float[Array, ""]
+
+    def __init__(self, gain: ArrayLike):
+        self.gain = as_float_array("rate_damping.gain", gain, ())
+
+    def __call__(self, t, y, wheels: Wheels) -> Array:
+        wanted = -self.gain.astype(y["omega"].dtype) * y["omega"]
+        return _allocate(wheels, wanted)
+
+
+class AttitudeTracking(eqx.Module):
+    """Control law for [`jaxdyn.Wheels`][]: quaternion feedback towards a fixed target attitude,
+    body torque `-kp sign(dq0) dq_vec - kd w` with `dq = target^* (x) q` (needs attitude).
+
+    Reference: Wie, Weiss & Arapostathis (1989), "Quaternion feedback regulator for spacecraft
+    eigenaxis rotations".
+    """
+
+    target: Float[Array, "4"]
+    kp: Float[Array, ""]
+    kd: Float[Array, ""]
+
+    def __init__(self, target: Float[ArrayLike, "4"], kp: ArrayLike, kd: ArrayLike):
+        target = as_float_array("attitude_tracking.target", target, (4,))
+        self.target = target / jnp.linalg.norm(target)
+        self.kp = as_float_array("attitude_tracking.kp", kp, (), target.dtype)
+        self.kd = as_float_array("attitude_tracking.kd", kd, (), target.dtype)
+
+    def __call__(self, t, y, wheels: Wheels) -> Array:
+        from .._rotations import quat_conjugate, quat_multiply
+
+        if "quaternion" not in y:
+            raise ParameterError(
+                "attitude tracking needs the attitude: use Scene(..., attitude=True)"
+            )
+        dtype = y["omega"].dtype
+        dq = quat_multiply(quat_conjugate(self.target.astype(dtype)), y["quaternion"])
+        sign = jnp.where(dq[0] >= 0, 1.0, -1.0).astype(dtype)
+        wanted = -self.kp.astype(dtype) * sign * dq[1:] - self.kd.astype(dtype) * y["omega"]
+        return _allocate(wheels, wanted)
+
+
+def _allocate(wheels: Wheels, body_torque) -> Array:
+    """Wheel torques `u` whose reaction `-sum u_i g_i` best matches `body_torque`."""
+    axes = wheels.axes.astype(body_torque.dtype)  # (N, 3)
+    return -jnp.linalg.pinv(axes.T) @ body_torque
