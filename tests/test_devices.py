@@ -176,7 +176,7 @@ def test_implicit_solver_for_a_stiff_damper():
     # lagging the body's changing rate by about (J / c) d(g . w)/dt ~ 1e-5 rad/s.
     speed = damper.speed(traj.y_final, _own_state(traj.y_final))
     assert abs(float(speed[0])) < 1e-4
-    assert int(traj.stats["num_steps"]) < 1000
+    assert int(traj.stats["num_steps"]) < 5000  # explicit: about 5 s / 3e-4 s > 15000 steps
 
 
 @pytest.mark.parametrize("scene", ["dual-spinner", "reaction-wheels", "explorer-1"])
