@@ -70,3 +70,9 @@ class AbstractEffect(eqx.Module):
 
     def energy(self, t: Scalar, y: State, own: State, body) -> Array | None:
         return None
+
+    def split_momentum(self, y: State, own: State) -> Array | None:
+        """For splitting integrators: the internal momentum, if it stays constant while the body
+        turns (a constant-speed rotor, free wheels). Effects that exchange momentum or apply
+        external torques return `None` and are not splittable."""
+        return None

@@ -141,6 +141,22 @@ class Scene(eqx.Module):
                 dy[f"{label}.{k}"] = v
         return dy
 
+    def split_flow(self, axis: int, dt, y: State) -> State:
+        """Exact flow of one term of a splitting of the vector field (see
+        `RigidBody.split_flow`), for scenes whose effects keep their internal momentum constant.
+        Raises `ParameterError` for scenes that cannot be split that way."""
+        split = getattr(self.body, "split_flow", None)
+        pairs = self._own(y)
+        blocked = [e.kind for e, own in pairs if e.split_momentum(y, own) is None]
+        if split is None or blocked:
+            why = f"effects {blocked} exchange momentum or apply torques" if blocked else (
+                f"a {self.body.kind} has no rotation splitting")
+            raise ParameterError(
+                f"this scene cannot use a splitting integrator: {why}; use a Runge-Kutta "
+                "solver such as diffrax.Tsit5()"
+            )
+        return split(axis, dt, y, pairs, self.attitude)
+
     def invariants(self, t: Scalar, y: State) -> dict[str, Array]:
         """Energy and momentum-like quantities (conserved only if listed in `conserved`)."""
         return self.body.invariants(t, y, self._own(y), self.attitude)

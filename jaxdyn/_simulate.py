@@ -75,7 +75,11 @@ class Trajectory(eqx.Module):
     def report(self) -> dict[str, Any]:
         """JSON-ready summary of the run (see `Scene.summary`): plain Python numbers and lists,
         with `None` for values that do not exist for this run."""
-        return jax.tree.map(_to_python, _summary(self))
+        out = jax.tree.map(_to_python, _summary(self))
+        for key, labels in self.scene.body.report_labels.items():
+            if out.get(key) is not None:
+                out[key] = labels[out[key]]
+        return out
 
     def __getattr__(self, name: str):
         if name.startswith("_"):
@@ -197,11 +201,13 @@ def simulate(
     - `solver`: any diffrax solver (default `diffrax.Tsit5()`).
     - `rtol`, `atol`: tolerances of the default PID step-size controller.
     - `stepsize_controller`: any diffrax controller (overrides `rtol`, `atol`); use
-      `diffrax.ConstantStepSize()` with `dt0` for fixed steps.
+      `diffrax.ConstantStepSize()` with `dt0` for fixed steps (the default for solvers without
+      error estimates, such as [`jaxdyn.RotationSplitting`][]).
     - `dt0`: initial step (chosen automatically by default for adaptive controllers).
     - `max_steps`: an error is raised, never a silently truncated result, if more are needed.
     - `adjoint`: any diffrax adjoint (default `diffrax.RecursiveCheckpointAdjoint()`).
-    - `events`: whether the scene's terminating events end the run.
+    - `events`: whether the scene's terminating events end the run (for a hybrid body, such
+      as [`jaxdyn.RoughFloorRod`][], whether its modes switch; see `jaxdyn._hybrid`).
     - `progress`: `True` for a tqdm progress bar, or any diffrax progress meter.
     - `dense`: keep the solver's dense output, for `Trajectory.evaluate` and
       `Trajectory.resample` at any time within the run.
@@ -240,6 +246,13 @@ def simulate(
                 )
     if not isinstance(max_steps, int) or max_steps <= 0:
         raise ParameterError(f"max_steps={max_steps!r}: must be a positive integer")
+    solver = dfx.Tsit5() if solver is None else solver
+    if stepsize_controller is None and not isinstance(solver, dfx.AbstractAdaptiveSolver):
+        if dt0 is None:
+            raise ParameterError(
+                f"solver {type(solver).__name__} takes fixed steps: give dt0 (the step size)"
+            )
+        stepsize_controller = dfx.ConstantStepSize()
     if stepsize_controller is None:
         for name, value in (("rtol", rtol), ("atol", atol)):
             if not (np.isfinite(value) and value > 0):
@@ -262,7 +275,7 @@ def simulate(
         meter = progress
     return _simulate(
         scene, y0, t0, t1, ts,
-        solver=dfx.Tsit5() if solver is None else solver,
+        solver=solver,
         controller=stepsize_controller,
         dt0=None if dt0 is None else jnp.asarray(dt0, dtype),
         max_steps=max_steps,
@@ -277,6 +290,12 @@ def simulate(
 def _simulate(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps, adjoint, events,
               meter, dense) -> Trajectory:
     y0 = scene.check(y0)
+    if events and scene.body.max_switches > 0:
+        from ._hybrid import simulate_hybrid
+
+        return simulate_hybrid(scene, y0, t0, t1, ts, solver=solver, controller=controller,
+                               dt0=dt0, max_steps=max_steps, adjoint=adjoint, meter=meter,
+                               dense=dense)
     dtype = t0.dtype
     first = dfx.SubSaveAt(t0=True) if ts is None else dfx.SubSaveAt(ts=ts)
     saveat = dfx.SaveAt(subs=[first, dfx.SubSaveAt(t1=True)], dense=dense)
@@ -292,6 +311,7 @@ def _simulate(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps, adjo
         stepsize_controller=controller,
         max_steps=max_steps,
         adjoint=adjoint,
+        args=scene,  # solvers that exploit the scene's structure (splittings) read it here
         event=event,
         progress_meter=meter,
         throw=False,

@@ -35,3 +35,6 @@ class Rotor(AbstractEffect):
 
     def momentum(self, t, y, own, body) -> Array:
         return self.momentum_vector.astype(y["omega"].dtype)
+
+    def split_momentum(self, y, own) -> Array:
+        return self.momentum_vector.astype(y["omega"].dtype)

@@ -186,6 +186,11 @@ class Wheels(AbstractEffect):
             return None
         return self._axial_torque(t, y, own) @ self.axes
 
+    def split_momentum(self, y, own) -> Array | None:
+        if self.motor is None and self.damping is None:  # free wheels keep h constant
+            return own["momentum"] @ self.axes
+        return None
+
     def energy(self, t, y, own, body) -> Array:
         return 0.5 * jnp.sum(own["momentum"] ** 2 / self.inertia)
 

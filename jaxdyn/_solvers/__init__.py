@@ -1,0 +1,1 @@
+from ._splitting import RotationSplitting as RotationSplitting
