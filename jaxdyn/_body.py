@@ -26,6 +26,14 @@ class AbstractBody(eqx.Module):
     """Fields that are physical parameters."""
     invariant_names: ClassVar[tuple[str, ...]]
     """Quantities conserved by the body's own dynamics (before effects are added)."""
+    max_switches: ClassVar[int] = 0
+    """Hybrid bodies: the most mode switches one run may take (0: a body with a single mode).
+
+    A hybrid body is simulated as a sequence of segments (see `jaxdyn._hybrid`): each segment is
+    integrated until one of the body's `events` reaches zero, located by root finding, and then
+    `switch_mode` maps the state into the next mode or ends the run."""
+    report_labels: ClassVar[Mapping[str, Mapping[float, str]]] = {}
+    """Summary keys whose values are codes, reported by name (`{1.0: "forward"}`)."""
 
     @abc.abstractmethod
     def initial_state(self, attitude: bool, **values: Any) -> State:
@@ -54,6 +62,22 @@ class AbstractBody(eqx.Module):
         zero or negative at the start ends the run at once.
         """
         return {}
+
+    def start_mode(self, t0: Scalar, y0: State) -> tuple[State, Array]:
+        """Hybrid bodies: the initial state mapped into the mode the run starts in, and whether
+        the run ends at once (traceable). Default: unchanged, and the run goes on."""
+        return y0, jnp.asarray(False)
+
+    def switch_mode(self, t: Scalar, y: State, fired: Mapping[str, Array]) -> tuple[State, Array]:
+        """Hybrid bodies: at an event, the state mapped into the next mode, and whether the run
+        ends there (traceable). `fired` maps each event name to whether it reached zero here
+        (more than one where events coincide). Default: every event ends the run."""
+        return y, jnp.asarray(True)
+
+    def exact_final(self, y0: State, t1, effects: tuple, attitude: bool):
+        """`(t_final, y_final)` of a run from `y0` to `t1` (or to its terminating event) by an
+        independent exact route, or `None` where none is known. Used by accuracy studies."""
+        return None
 
     def invariant_scale(self, name: str, value: Array) -> Array:
         """Scale against which the drift of invariant `name` is measured (default: its

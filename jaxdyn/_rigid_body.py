@@ -211,6 +211,11 @@ class RigidBody(AbstractBody):
             out["quaternion"] = quat_multiply(y["quaternion"], turn)
         return out
 
+    def exact_final(self, y0, t1, effects, attitude):
+        if effects or attitude:
+            return None
+        return t1, {"omega": self.exact_omega(y0["omega"], t1)}
+
     # -- analytic companion ---------------------------------------------------------------------
 
     @eqx.filter_jit

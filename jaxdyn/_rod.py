@@ -137,6 +137,22 @@ class FallingRod(AbstractBody):
             "potential_energy": potential,
         }
 
+    def exact_final(self, y0, t1, effects, attitude):
+        """The impact (time, flat angle, rate) from the quadrature and the energy integral."""
+        theta0, theta_dot0 = y0["theta"], y0["theta_dot"]
+        t_fall = self.fall_time(theta0, theta_dot0)
+        if not bool(t_fall <= t1):
+            return None
+        # The side it lands on: its own, unless it rises with the energy to pass over the top.
+        side = jnp.where(theta0 == 0, jnp.sign(theta_dot0), jnp.sign(theta0))
+        rising = side * theta_dot0 < 0
+        s0 = jnp.sin(0.5 * theta0)
+        kinetic = theta_dot0**2 * (1 + 3 * jnp.sin(theta0) ** 2) * self.length / (24 * self.g)
+        side = jnp.where(rising & (kinetic > s0**2), -side, side)
+        flat = jnp.pi / 2 * side
+        rate = self.rate(jnp.pi / 2, theta0, theta_dot0)
+        return t_fall, {"theta": flat, "theta_dot": jnp.sign(flat) * rate}
+
     def invariant_scale(self, name, value):
         # The energy of the rod standing upright, m g L / 2: the energy of a rod starting flat is
         # zero, so its own magnitude is no scale.

@@ -13,6 +13,8 @@ from ._custom_types import Scalar, State
 from ._effect import AbstractEffect
 from ._validation import ParameterError
 
+_SHAPES: dict = {}  # state layouts by scene structure: they never change for a structure
+
 
 class Scene(eqx.Module):
     """A body plus the effects that the scene calls for.
@@ -95,9 +97,13 @@ class Scene(eqx.Module):
         return y
 
     def state_shapes(self) -> dict[str, tuple[int, ...]]:
-        """Names and shapes of the state variables, as integrated."""
-        layout = jax.eval_shape(lambda: self._example_state())
-        return {k: v.shape for k, v in layout.items()}
+        """Names and shapes of the state variables, as integrated (cached per structure)."""
+        leaves, treedef = jax.tree_util.tree_flatten(self)
+        key = (treedef, tuple(getattr(x, "shape", None) for x in leaves))
+        if key not in _SHAPES:
+            layout = jax.eval_shape(lambda: self._example_state())
+            _SHAPES[key] = {k: v.shape for k, v in layout.items()}
+        return dict(_SHAPES[key])
 
     def _example_state(self) -> State:
         if self.body.kind == "rigid-body":
@@ -156,6 +162,11 @@ class Scene(eqx.Module):
                 "solver such as diffrax.Tsit5()"
             )
         return split(axis, dt, y, pairs, self.attitude)
+
+    def exact_final(self, y0: State, t1) -> tuple | None:
+        """`(t_final, y_final)` by an independent exact route (closed form, quadrature), or
+        `None` where none is known for this scene."""
+        return self.body.exact_final(y0, t1, self._own(y0), self.attitude)
 
     def invariants(self, t: Scalar, y: State) -> dict[str, Array]:
         """Energy and momentum-like quantities (conserved only if listed in `conserved`)."""
