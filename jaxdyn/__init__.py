@@ -63,7 +63,8 @@ from ._scenefile import (
     load_scene as load_scene,
 )
 from ._simulate import Trajectory as Trajectory, simulate as simulate
-from ._solvers import RotationSplitting as RotationSplitting
+from . import accuracy as accuracy
+from ._solvers import RK4 as RK4, RotationSplitting as RotationSplitting
 from ._validation import ParameterError as ParameterError
 
 __version__ = "0.1.0"
