@@ -32,6 +32,7 @@ from ._polhode import (
 )
 from ._rigid_body import RigidBody as RigidBody
 from ._rod import FallingRod as FallingRod
+from ._rough_rod import RoughFloorRod as RoughFloorRod
 from ._rotations import (
     dcm_to_euler321 as dcm_to_euler321,
     dcm_to_mrp as dcm_to_mrp,

@@ -31,6 +31,7 @@ from ._custom_types import State
 from ._effects import AttitudeTracking, ExternalTorque, GravityGradient, RateDamping, Rotor, Wheels
 from ._rigid_body import RigidBody
 from ._rod import FallingRod
+from ._rough_rod import RoughFloorRod
 from ._scene import Scene
 from ._validation import ParameterError, format_value
 
@@ -39,6 +40,13 @@ _BODIES: dict[str, dict[str, Any]] = {
     "falling-rod": {
         "cls": FallingRod,
         "parameters": {"length": "m", "mass": "kg", "g": "m/s^2"},
+        "initial": {"theta0": "theta", "theta_dot0": "theta_dot"},
+        "options": {},
+        "required": ("length", "theta0"),
+    },
+    "rough-floor-rod": {
+        "cls": RoughFloorRod,
+        "parameters": {"length": "m", "mass": "kg", "g": "m/s^2", "mu_s": "1", "mu_k": "1"},
         "initial": {"theta0": "theta", "theta_dot0": "theta_dot"},
         "options": {},
         "required": ("length", "theta0"),
