@@ -1,5 +1,6 @@
 """jaxdyn: differentiable rigid-body dynamics in pure JAX."""
 
+from . import accuracy as accuracy
 from ._body import AbstractBody as AbstractBody
 from ._effect import AbstractEffect as AbstractEffect
 from ._effects import (
@@ -24,6 +25,15 @@ from ._free_body import (
     torque_free_omega as torque_free_omega,
     torque_free_period as torque_free_period,
 )
+from ._identify import (
+    AbstractParameterisation as AbstractParameterisation,
+    FitResult as FitResult,
+    Positive as Positive,
+    Unconstrained as Unconstrained,
+    UnitQuaternion as UnitQuaternion,
+    ValidInertia as ValidInertia,
+    fit as fit,
+)
 from ._inertia import inertia_tensor as inertia_tensor, principal_axes as principal_axes
 from ._polhode import (
     polhode as polhode,
@@ -32,7 +42,6 @@ from ._polhode import (
 )
 from ._rigid_body import RigidBody as RigidBody
 from ._rod import FallingRod as FallingRod
-from ._rough_rod import RoughFloorRod as RoughFloorRod
 from ._rotations import (
     dcm_to_euler321 as dcm_to_euler321,
     dcm_to_mrp as dcm_to_mrp,
@@ -57,18 +66,13 @@ from ._rotations import (
     safe_norm as safe_norm,
     skew as skew,
 )
+from ._rough_rod import RoughFloorRod as RoughFloorRod
 from ._scene import Scene as Scene
 from ._scenefile import (
     SceneSpec as SceneSpec,
     builtin_scenes as builtin_scenes,
     load_scene as load_scene,
 )
-from ._simulate import Trajectory as Trajectory, simulate as simulate
-from . import accuracy as accuracy
-from ._solvers import RK4 as RK4, RotationSplitting as RotationSplitting
-from ._validation import ParameterError as ParameterError
-
-__version__ = "0.1.0"
 from ._separatrix import (
     Equilibria as Equilibria,
     Separatrices as Separatrices,
@@ -76,3 +80,8 @@ from ._separatrix import (
     find_equilibria as find_equilibria,
     trace_separatrices as trace_separatrices,
 )
+from ._simulate import Trajectory as Trajectory, simulate as simulate
+from ._solvers import RK4 as RK4, RotationSplitting as RotationSplitting
+from ._validation import ParameterError as ParameterError
+
+__version__ = "0.1.0"

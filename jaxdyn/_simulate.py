@@ -254,11 +254,13 @@ def simulate(
             )
         stepsize_controller = dfx.ConstantStepSize()
     if stepsize_controller is None:
+        # Tolerances may be traced (a jitted function of rtol): then they are not checked here.
+        concrete = is_concrete(rtol, atol)
         for name, value in (("rtol", rtol), ("atol", atol)):
-            if not (np.isfinite(value) and value > 0):
+            if concrete and not (np.isfinite(value) and value > 0):
                 raise ParameterError(f"{name}={value!r}: must be positive and finite")
         eps = float(jnp.finfo(dtype).eps)
-        if rtol < 4 * eps:
+        if concrete and rtol < 4 * eps:
             raise ParameterError(
                 f"rtol={rtol:g}: below what {jnp.dtype(dtype).name} can reach (eps = {eps:.2g});"
                 f" use rtol >= {4 * eps:.2g}, or float64 "

@@ -1,0 +1,243 @@
+"""`jaxdyn fit`: identify a scene's parameters and initial state from a CSV of samples."""
+
+import csv
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+from ._common import emit, enable_x64, parse_sets
+
+HELP = "fit a scene's parameters and initial state to sampled data (CSV)"
+
+# Columns of a data file, by the body kind of the scene (see `_identify/_presets.py`).
+_DEFAULT_SCENES = {"rigid-body": "torque-free", "falling-rod": "falling-rod"}
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("data", metavar="DATA.csv",
+                        help="samples with a header row: t,wx,wy,wz (rad/s) for a rigid body "
+                             "(optionally q0,q1,q2,q3 for the attitude), t,theta (rad) for the "
+                             "falling rod")
+    parser.add_argument("--scene",
+                        help="a built-in scene (torque-free, falling-rod, or any rigid-body "
+                             "scene such as gyrostat) or a TOML scene file; by default chosen "
+                             "from the columns")
+    parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                        help="fix a known parameter or initial value instead of fitting it, "
+                             "e.g. --set g=9.81, --set theta_dot0=0, --set rotor.momentum=0,3,0 "
+                             "(repeatable); rtol and atol set the integration tolerances")
+    parser.add_argument("--restarts", type=int, default=8,
+                        help="most starting points (default 8; the fit stops once two agree)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the random restarts")
+    parser.add_argument("--method", choices=("lm", "lbfgs"), default="lm",
+                        help="lm: Levenberg-Marquardt (default); lbfgs: Adam then L-BFGS")
+    parser.add_argument("--progress", action="store_true",
+                        help="show a progress bar (on standard error)")
+    parser.add_argument("--json", action="store_true", help="print one JSON object")
+
+
+def _read_csv(path: str) -> tuple[list[str], list[list[float]]]:
+    from .._validation import ParameterError
+
+    p = Path(path)
+    if not p.is_file():
+        raise ParameterError(f"data={path!r}: no such file")
+    try:
+        text = p.read_text()
+    except (OSError, UnicodeDecodeError) as e:
+        raise ParameterError(f"data={path!r}: cannot be read as text ({e})") from None
+    lines = [(i + 1, row) for i, row in enumerate(csv.reader(text.splitlines())) if row]
+    if not lines:
+        raise ParameterError(f"data={path!r}: empty; expected a header row, then samples")
+    header = [h.strip() for h in lines[0][1]]
+    duplicates = sorted({h for h in header if header.count(h) > 1})
+    if duplicates:
+        raise ParameterError(f"{path}: column(s) {duplicates} appear more than once")
+    rows = []
+    for lineno, row in lines[1:]:
+        if len(row) != len(header):
+            raise ParameterError(
+                f"{path} line {lineno}: {len(row)} values, expected {len(header)} "
+                f"(columns {','.join(header)})"
+            )
+        values = []
+        for name, text_value in zip(header, row):
+            try:
+                v = float(text_value)
+            except ValueError:
+                raise ParameterError(
+                    f"{path} line {lineno}, column {name}={text_value.strip()!r}: "
+                    "expected a number"
+                ) from None
+            if not math.isfinite(v):
+                raise ParameterError(
+                    f"{path} line {lineno}, column {name}={text_value.strip()}: must be finite"
+                )
+            values.append(v)
+        rows.append(values)
+    return header, rows
+
+
+def _choose_scene(header: list[str], path: str) -> str:
+    from .._identify._presets import FIT_SPECS
+    from .._validation import ParameterError
+
+    for kind, spec in FIT_SPECS.items():
+        if all(c in header for cols in spec.columns.values() for c in cols):
+            return _DEFAULT_SCENES[kind]
+    expected = "; ".join(
+        f"{_DEFAULT_SCENES[k]}: t," + ",".join(c for cols in s.columns.values() for c in cols)
+        for k, s in FIT_SPECS.items()
+    )
+    raise ParameterError(f"{path}: columns {','.join(header)} match no scene; expected "
+                         f"{expected} (or pass --scene)")
+
+
+def _continuous_quaternions(q):
+    """Flip signs so that successive samples are on the same side (q and -q are one
+    attitude; the integrated quaternion is continuous)."""
+    import numpy as np
+
+    q = np.array(q, dtype=float)
+    for i in range(1, len(q)):
+        if np.dot(q[i], q[i - 1]) < 0:
+            q[i] = -q[i]
+    return q
+
+
+def _number(x) -> Any:
+    import numpy as np
+
+    a = np.asarray(x)
+    if a.ndim == 0:
+        v = float(a)
+        return v if math.isfinite(v) else None
+    return [_number(v) for v in a]
+
+
+def run(args) -> int:
+    enable_x64()
+    import numpy as np
+
+    from .._identify import fit
+    from .._identify._presets import FIT_SPECS
+    from .._scenefile import load_scene
+    from .._validation import ParameterError
+
+    sets = parse_sets(args.set)
+    if "t1" in sets:
+        raise ParameterError("--set t1: not used by fit; the sample times set the time span")
+    if args.restarts < 1:
+        raise ParameterError(f"--restarts={args.restarts}: must be a positive integer")
+    header, rows = _read_csv(args.data)
+    scene_name = args.scene or _choose_scene(header, args.data)
+
+    # A first load finds the body kind (and checks the --set names against the scene).
+    kind = load_scene(scene_name, sets).scene.body.kind
+    if kind not in FIT_SPECS:
+        raise ParameterError(f"--scene {scene_name}: a {kind} cannot be fitted; fit supports "
+                             f"{sorted(FIT_SPECS)}")
+    spec = FIT_SPECS[kind]
+    outputs = dict(spec.columns)
+    optional = {k: v for k, v in spec.optional_columns.items() if any(c in header for c in v)}
+    outputs.update(optional)
+    required = ["t"] + [c for cols in spec.columns.values() for c in cols]
+    extra = [c for cols in spec.optional_columns.values() for c in cols]
+    allowed = required + extra
+    wanted = required + [c for cols in optional.values() for c in cols]
+    missing = [c for c in wanted if c not in header]
+    if missing:
+        also = f" (optionally also {','.join(extra)})" if extra else ""
+        raise ParameterError(f"{args.data}: missing column(s) {missing}: a {kind} needs "
+                             f"columns {','.join(required)}{also}")
+    unknown = [c for c in header if c not in allowed]
+    if unknown:
+        raise ParameterError(f"{args.data}: unknown column(s) {unknown}: allowed are "
+                             f"{','.join(allowed)}")
+    if len(rows) < 3:
+        raise ParameterError(f"{args.data}: {len(rows)} data row(s): at least 3 are needed "
+                             "(and more values than unknowns)")
+    table = np.array(rows)
+    col = {name: table[:, i] for i, name in enumerate(header)}
+    ts = col["t"]
+    steps = np.diff(ts)
+    if np.any(steps <= 0):
+        i = int(np.argmax(steps <= 0)) + 1
+        raise ParameterError(f"{args.data} row {i + 1}, column t={ts[i]:g}: times must be "
+                             f"strictly increasing (previous {ts[i - 1]:g})")
+    data = {name: np.stack([col[c] for c in cols], axis=-1) if len(cols) > 1 else col[cols[0]]
+            for name, cols in outputs.items()}
+    if "quaternion" in data:
+        data["quaternion"] = _continuous_quaternions(data["quaternion"])
+
+    # Starting initial values from the first sample, unless given.
+    state_to_file = {v: k for k, v in spec.initial_names.items()}
+    overrides = dict(sets)
+    for name in data:
+        file_name = state_to_file.get(name)
+        if file_name is not None and file_name not in sets:
+            value = data[name][0]
+            overrides[file_name] = value.tolist() if np.ndim(value) else float(value)
+    if "quaternion" in data:
+        overrides["attitude"] = True
+    loaded = load_scene(scene_name, overrides)
+    scene = loaded.scene
+
+    parameters = {k: m for k, m in spec.parameters.items() if k not in sets}
+    initial = {**spec.initial, **{k: m for k, m in spec.optional_initial.items() if k in data}}
+    initial = {k: m for k, m in initial.items() if state_to_file.get(k) not in sets}
+    if not parameters and not initial:
+        raise ParameterError("--set fixes everything that could be fitted: nothing to fit")
+    tolerances = {k: float(sets[k]) for k in ("rtol", "atol") if k in sets}
+
+    t0 = time.perf_counter()
+    # Rates and attitude have different units: each is weighted by its own residual scale.
+    result = fit(scene, ts, data, parameters=parameters, initial=initial, y0=loaded.y0,
+                 notes=spec.notes, restarts=args.restarts, key=args.seed, method=args.method,
+                 reweight=True, progress=args.progress, **tolerances)
+    fit_s = time.perf_counter() - t0
+
+    v, s = result.values, result.std
+    out: dict[str, Any] = {"scene": scene_name, "body": kind, "samples": int(ts.size)}
+    if "inertia" in parameters:
+        scale = result.identifiable["inertia.scale"]
+        out.update({
+            "principal_moments": _number(v["inertia.principal_moments"]),
+            "principal_axes": _number(v["inertia.principal_axes"]),
+            "std": _number(s["inertia.principal_moments"]),
+            "scale_identified": scale,
+        })
+        if scale:
+            out["inertia"] = _number(v["inertia"])
+    def determined(name):
+        return any(ok for c, ok in result.identifiable.items()
+                   if c == name or c.startswith((name + ".", name + "[")))
+
+    for name in parameters:
+        if name != "inertia":
+            # A parameter that the data do not determine has no value (null), only a note.
+            out[name] = _number(v[name]) if determined(name) else None
+            out[f"{name}_std"] = _number(s[name]) if determined(name) else None
+    for name in initial:
+        file_name = state_to_file.get(name, name)
+        out[file_name] = _number(v[name])
+        out[f"{file_name}_std"] = _number(s[name])
+    # In the units of the first output (rad/s, or rad for the rod); all outputs listed apart.
+    rms = result.residual_rms_by_output
+    out["residual_rms"] = rms[next(iter(spec.columns))]
+    if len(rms) > 1:
+        out["residual_rms_by_output"] = rms
+    known = {k: _number(val) for k, val in scene.parameters().items()
+             if k not in parameters and not callable(val)}
+    if known:
+        out["known"] = known
+    out["identifiable"] = result.identifiable
+    out["not_identifiable"] = [c for c, ok in result.identifiable.items() if not ok]
+    out["notes"] = list(result.notes)
+    out["converged"] = result.converged
+    out["iterations"] = result.iterations
+    out["starts"] = int(result.restart_losses.size)
+    out["timing"] = {"fit_s": fit_s, "wall_s": time.perf_counter() - args.t_start}
+    emit(out, args.json, title=f"fit {scene_name} to {args.data}")
+    return 0

@@ -1,0 +1,820 @@
+r"""`fit`: identify a scene's parameters and initial state from sampled outputs.
+
+The fitter only uses the scene protocol: parameters by the names of `scene.parameters()`
+(changed with `scene.replace`, which does not recompile), state variables by the names of
+`scene.state_shapes()`, observed outputs by the names of `scene.output_names()`, and
+[`jaxdyn.simulate`][] to integrate. What is specific to a scene (a valid inertia tensor, which
+parameters a rod's angle determines) is declared through parameterisation objects; nothing here
+branches on the kind of scene.
+
+Residuals are $r_k(u) = (y(t_k; u) - d_k)/\sigma$ over the samples, with $u$ the unconstrained
+vector of every fitted quantity. Uncertainties are the Gauss--Newton covariance
+$s^2 (J^T J)^{-1}$ at the optimum, with $s^2 = |r|^2 / (n_\mathrm{obs} - n_\mathrm{free})$,
+propagated to the reported quantities with the Jacobian of their map from $u$.
+
+Choices, measured on the torque-free fit of `benchmarks/identify.py` (200 samples of three
+rates, 6-9 unknowns, CPU):
+
+- Derivatives: forward mode through the integrator (`diffrax.ForwardMode` and `jax.jacfwd`):
+  one integration carrying all $n$ tangents gives the whole Jacobian in about 2-4 ms. Reverse
+  mode (`RecursiveCheckpointAdjoint`) needs one backward pass per residual for the Jacobian
+  (about 76 ms) and is no faster even for the gradient of the scalar loss (2.0 against 1.4 ms).
+- Minimiser: Levenberg--Marquardt from optimistix parts (its damped Newton descent and
+  classical trust region), stepped here so that every iteration's loss is recorded. It needs
+  about 40 iterations and 0.07 s for that fit; optax's Adam (200 steps) then L-BFGS reaches the
+  same optimum in about 440 iterations and 1.3 s. Both are available (`method`).
+- Continuation in the time span (`horizons`): each start is fitted to the first quarter of the
+  samples, then half, then all; with it every random start reached the global optimum in our
+  trials, without it about half did (oscillatory records have many local minima).
+"""
+
+import dataclasses
+import math
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
+
+import diffrax as dfx
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+import optimistix as optx
+from jaxtyping import Array, ArrayLike, Float
+
+from .._custom_types import State
+from .._scene import Scene
+from .._simulate import simulate
+from .._validation import ParameterError, format_value
+from ._parameterisation import AbstractParameterisation, Unconstrained
+
+# Samples are padded (with zero weight) to a multiple of this, so that data sets of similar
+# length share one compilation.
+_BUCKET = 32
+
+
+class _Problem(eqx.Module):
+    """The residual function of a fit: everything static about it, plus the scene's arrays."""
+
+    scene: Scene
+    y0: State
+    names: tuple[str, ...] = eqx.field(static=True)
+    is_state: tuple[bool, ...] = eqx.field(static=True)
+    maps: tuple[AbstractParameterisation, ...]
+    sizes: tuple[int, ...] = eqx.field(static=True)
+    outputs: tuple[str, ...] = eqx.field(static=True)
+    sigma: tuple[Array, ...]
+    rtol: Array
+    atol: Array
+    max_steps: int = eqx.field(static=True)
+    dtype: Any = eqx.field(static=True)
+
+    def split(self, u: Float[Array, " n"]) -> list[Array]:
+        """The parts of `u` of each fitted quantity, in the dtype of the data."""
+        u = u.astype(self.dtype) if jnp.issubdtype(u.dtype, jnp.floating) else u
+        offsets = np.cumsum((0,) + self.sizes)
+        return [u[a:b] for a, b in zip(offsets[:-1], offsets[1:])]
+
+    def values(self, u: Float[Array, " n"]) -> dict[str, Array]:
+        return {name: m(part) for name, m, part in zip(self.names, self.maps, self.split(u))}
+
+    def scene_and_state(self, u: Float[Array, " n"]) -> tuple[Scene, State]:
+        values = self.values(u)
+        params = {n: v for n, v, s in zip(self.names, values.values(), self.is_state) if not s}
+        y0 = dict(self.y0)
+        y0.update({n: v for n, v, s in zip(self.names, values.values(), self.is_state) if s})
+        scene = self.scene.replace(params) if params else self.scene
+        return scene, y0
+
+    def predict(self, u: Float[Array, " n"], ts: Float[Array, " N"]) -> dict[str, Array]:
+        scene, y0 = self.scene_and_state(u)
+        traj = simulate(
+            scene, y0, ts[-1], t0=ts[0], ts=ts,
+            # A controller built here, so that the tolerances are arrays (no recompilation).
+            stepsize_controller=dfx.PIDController(rtol=self.rtol, atol=self.atol),
+            max_steps=self.max_steps, adjoint=dfx.ForwardMode(), events=False,
+        )
+        out = jax.vmap(scene.outputs)(traj.ts, traj.ys)
+        return {name: out[name] for name in self.outputs}
+
+    def residuals(self, u, ts, data, weights) -> Float[Array, " m"]:
+        """Weighted residuals, in the dtype of `u` (the optimiser's), whatever the dtype of the
+        simulation (the data's)."""
+        pred = self.predict(u, ts)
+        parts = []
+        for name, sigma in zip(self.outputs, self.sigma):
+            r = (pred[name] - data[name]) / sigma
+            r = r.reshape(r.shape[0], -1) * jnp.sqrt(weights)[:, None]
+            parts.append(r.ravel())
+        return jnp.concatenate(parts).astype(u.dtype)
+
+
+# -- progress ---------------------------------------------------------------------------------
+
+_BAR: dict[str, Any] = {}
+
+
+def _tick(loss) -> None:
+    bar = _BAR.get("bar")
+    if bar is not None:
+        bar.update(1)
+        bar.set_postfix_str(f"loss {float(loss):.4g}", refresh=False)
+
+
+def _report_progress(progress: bool, loss) -> None:
+    if progress:
+        jax.debug.callback(_tick, loss)
+
+
+# -- compiled pieces ----------------------------------------------------------------------------
+
+
+def _loss(problem, u, ts, data, weights):
+    r = problem.residuals(u, ts, data, weights)
+    return 0.5 * jnp.sum(r**2)
+
+
+def _jacobian_and_value(f, u):
+    """`(df/du, f(u))` from one forward-mode pass (the value is the primal of that pass)."""
+
+    def twice(u):
+        r = f(u)
+        return r, r
+
+    return jax.jacfwd(twice, has_aux=True)(u)
+
+
+@eqx.filter_jit
+def _jacobian(problem, u, ts, data, weights):
+    """Residuals and their Jacobian (forward mode through the integrator)."""
+    J, r = _jacobian_and_value(lambda u: problem.residuals(u, ts, data, weights), u)
+    return r, J
+
+
+@eqx.filter_jit
+def _adam(problem, u0, free, ts, data, weights, learning_rate, *, steps, progress):
+    """`steps` Adam steps; returns the last iterate and the loss before each step."""
+    opt = optax.adam(learning_rate)
+    value_and_grad = _forward_value_and_grad(problem, u0, free, ts, data, weights)
+
+    def step(carry, _):
+        u, state = carry
+        loss, grad = value_and_grad(u)
+        updates, state = opt.update(grad, state, u)
+        _report_progress(progress, loss)
+        return (optax.apply_updates(u, updates), state), loss
+
+    (u, _), losses = jax.lax.scan(step, (u0, opt.init(u0)), None, length=steps)
+    return u, losses
+
+
+def _forward_value_and_grad(problem, u_fixed, free, ts, data, weights):
+    """Loss and gradient, the gradient by forward mode (`jacfwd`), frozen components masked."""
+
+    def loss(u):
+        return _loss(problem, jnp.where(free, u, u_fixed), ts, data, weights)
+
+    def value_and_grad(u):
+        return loss(u), jax.jacfwd(loss)(u)
+
+    return value_and_grad
+
+
+def _small_decrease(previous, loss, tol):
+    """An accepted step lowered the loss by less than `tol` (relative); rejected steps, which
+    leave the loss unchanged, do not count."""
+    return (loss < previous) & (previous - loss <= tol * loss)
+
+
+def _silent(**kwargs) -> None:
+    pass
+
+
+class _LevenbergMarquardt(optx.AbstractGaussNewton):
+    """Levenberg--Marquardt assembled from optimistix parts, as optimistix documents for
+    custom solvers: the damped Newton descent of [`optimistix.LevenbergMarquardt`][] with a
+    trust region that grows faster (x4 when the model predicts at least half of the
+    reduction, instead of x3.5 at 99 %). On the fits of `benchmarks/identify.py` this takes
+    about 40 % fewer iterations than the default."""
+
+    rtol: float
+    atol: float
+    norm: Callable = optx.max_norm
+    descent: optx.DampedNewtonDescent = optx.DampedNewtonDescent()
+    search: optx.ClassicalTrustRegion = optx.ClassicalTrustRegion(
+        high_cutoff=0.5, low_cutoff=0.01, high_constant=4.0, low_constant=0.25
+    )
+    verbose: Callable = _silent
+
+
+def _with_forward_jacobian(residuals):
+    """`residuals` with a JVP rule that builds the whole Jacobian in one forward-mode pass
+    (`jacfwd`: one integration carrying all tangents) and then applies it. optimistix
+    linearises the residuals and materialises the Jacobian from one JVP per column; through
+    this rule the integration runs once per iteration, not once per column."""
+
+    @jax.custom_jvp
+    def f(v):
+        return residuals(v)
+
+    @f.defjvp
+    def f_jvp(primals, tangents):
+        (v,), (t,) = primals, tangents
+        J, r = _jacobian_and_value(residuals, v)
+        return r, J @ t
+
+    return f
+
+
+# Forward-mode linearisation (the residuals carry a forward-mode Jacobian rule).
+_OPTIONS = {"jac": "fwd"}
+
+
+@eqx.filter_jit
+def _levenberg_marquardt(problem, u0, free, ts, data, weights, tol, *, max_iter, progress):
+    """Levenberg--Marquardt (optimistix), stepped here so that the loss of every iteration is
+    recorded. Converged when optimistix's Cauchy criterion holds (successive accepted iterates
+    differ by less than `tol (1 + |u|)` and so do the residuals), or when an accepted step
+    lowered the loss by less than `tol` (relative)."""
+
+    residuals = _with_forward_jacobian(
+        lambda v: problem.residuals(jnp.where(free, v, u0), ts, data, weights)
+    )
+
+    def fn(v, args):
+        r = residuals(v)
+        return r, 0.5 * jnp.sum(r**2)
+
+    solver = _LevenbergMarquardt(rtol=tol, atol=tol)
+    tags = frozenset()
+    f_struct, aux_struct = jax.eval_shape(lambda: fn(u0, None))
+    state = solver.init(fn, u0, None, _OPTIONS, f_struct, aux_struct, tags)
+    dynamic, static = eqx.partition(state, eqx.is_array)
+    history = jnp.full(max_iter, jnp.nan, u0.dtype)
+    inf = jnp.asarray(jnp.inf, u0.dtype)
+
+    def cond(carry):
+        _, _, k, done, failed, _ = carry
+        return ~done & ~failed & (k < max_iter)
+
+    def body(carry):
+        u, dynamic, k, _, _, history = carry
+        state = eqx.combine(static, dynamic)
+        u, state, loss = solver.step(fn, u, None, _OPTIONS, state, tags)
+        done, result = solver.terminate(fn, u, None, _OPTIONS, state, tags)
+        previous = jnp.where(k > 0, history[jnp.maximum(k - 1, 0)], inf)
+        done = done | _small_decrease(previous, loss, tol)
+        failed = (result != optx.RESULTS.successful) | ~jnp.isfinite(loss)
+        _report_progress(progress, loss)
+        dynamic = eqx.filter(state, eqx.is_array)
+        return u, dynamic, k + 1, done, failed, history.at[k].set(loss)
+
+    carry = (u0, dynamic, jnp.asarray(0), jnp.asarray(False), jnp.asarray(False), history)
+    u, _, k, done, failed, history = jax.lax.while_loop(cond, body, carry)
+    loss = _loss(problem, u, ts, data, weights)
+    return u, loss, k, done & ~failed, history
+
+
+@eqx.filter_jit
+def _lbfgs(problem, u0, free, ts, data, weights, tol, *, max_iter, progress):
+    """L-BFGS (optax, zoom line search). Converged when the largest gradient component is
+    below `tol`, or a step lowered the loss by less than `tol` (relative)."""
+    value_and_grad = _forward_value_and_grad(problem, u0, free, ts, data, weights)
+
+    # optax's line search differentiates the loss in reverse mode; answer with the
+    # forward-mode gradient (no reverse pass through the integrator).
+    @jax.custom_vjp
+    def loss(u):
+        return value_and_grad(u)[0]
+
+    def loss_fwd(u):
+        value, grad = value_and_grad(u)
+        return value, grad
+
+    def loss_bwd(grad, cotangent):
+        return (cotangent * grad,)
+
+    loss.defvjp(loss_fwd, loss_bwd)
+    opt = optax.lbfgs()
+    from_state = optax.value_and_grad_from_state(loss)
+    history = jnp.full(max_iter, jnp.nan, u0.dtype)
+
+    def cond(carry):
+        _, _, k, done, _ = carry
+        return ~done & (k < max_iter)
+
+    def body(carry):
+        u, state, k, _, history = carry
+        value, grad = from_state(u, state=state)
+        updates, state = opt.update(grad, state, u, value=value, grad=grad, value_fn=loss)
+        u = optax.apply_updates(u, updates)
+        small_grad = jnp.max(jnp.abs(grad)) <= tol
+        previous = jnp.where(k > 0, history[jnp.maximum(k - 1, 0)], jnp.inf)
+        done = small_grad | _small_decrease(previous, value, tol) | ~jnp.isfinite(value)
+        _report_progress(progress, value)
+        return u, state, k + 1, done, history.at[k].set(value)
+
+    carry = (u0, opt.init(u0), jnp.asarray(0), jnp.asarray(False), history)
+    u, _, k, done, history = jax.lax.while_loop(cond, body, carry)
+    loss_value = _loss(problem, u, ts, data, weights)
+    return u, loss_value, k, done & jnp.isfinite(loss_value), history
+
+
+def _summaries(problem, u, free):
+    out = {}
+    for name, m, part, f in zip(problem.names, problem.maps, problem.split(u),
+                                problem.split(free)):
+        out.update(m.summary(name, part, f))
+    return out
+
+
+@eqx.filter_jit
+def _uncertainty(problem, u, free, r, J, n_obs):
+    """Gauss--Newton covariance of `u` and the 1-sigma intervals of the reported summaries,
+    from the residuals `r` and Jacobian `J` at the optimum `u`."""
+    dtype = u.dtype
+    J, r = jnp.where(free, J.astype(dtype), 0.0), r.astype(dtype)
+    dof = jnp.maximum(n_obs - jnp.sum(free), 1).astype(dtype)
+    s2 = jnp.sum(r**2) / dof
+    H = J.T @ J + jnp.diag(jnp.where(free, 0.0, 1.0).astype(dtype))
+    cov = jnp.where(free[:, None] & free[None, :], s2 * jnp.linalg.inv(H), 0.0)
+    values = _summaries(problem, u, free)
+    G = jax.jacfwd(_summaries, argnums=1)(problem, u, free)
+    eps = jnp.finfo(dtype).eps
+    std = {}
+    for key, g in G.items():
+        g = g.reshape(-1, u.shape[0]).astype(dtype)
+        var = jnp.einsum("ij,jk,ik->i", g, cov, g)
+        # A quantity that depends on a component kept fixed (not identifiable) has no interval.
+        on_fixed = jnp.max(jnp.abs(jnp.where(free, 0.0, g)), axis=1)
+        undetermined = on_fixed > jnp.sqrt(eps) * jnp.max(jnp.abs(g))
+        sd = jnp.where(undetermined, jnp.nan, jnp.sqrt(jnp.maximum(var, 0.0)))
+        std[key] = sd.reshape(values[key].shape).astype(values[key].dtype)
+    # Conditioning of the free columns scaled to unit norm: a tiny singular value is a
+    # combination of components that the data do not determine.
+    norms = jnp.linalg.norm(J, axis=0)
+    Js = J / jnp.where(norms > 0, norms, 1.0)
+    _, sv, vt = jnp.linalg.svd(Js, full_matrices=False)
+    return r, cov, values, std, s2, sv, vt
+
+
+# -- public API -----------------------------------------------------------------------------
+
+
+@dataclasses.dataclass(frozen=True)
+class FitResult:
+    """The result of [`jaxdyn.fit`][].
+
+    **Fields:**
+
+    - `values`: fitted values by name: every fitted parameter and initial-state variable, and
+      the quantities their parameterisations report (for [`jaxdyn.ValidInertia`][]:
+      `"<name>.principal_moments"` (ascending; normalised so that the largest is 1 when the
+      scale is not identifiable) and `"<name>.principal_axes"` (columns)).
+    - `std`: 1-sigma intervals of `values` (Gauss--Newton), same keys; `nan` for a quantity
+      that depends on a component the data do not determine.
+    - `identifiable`: for each unconstrained component, whether the data determine it (a
+      component whose Jacobian column is zero is kept at its starting value).
+    - `notes`: one line per component or combination that the data do not determine.
+    - `scene`, `y0`: the fitted scene and initial state.
+    - `u`, `components`, `covariance`: the unconstrained optimum, the names of its components
+      and their covariance.
+    - `loss`: `0.5 |r|^2` at the optimum; `residual_rms`: RMS residual (in units of the data,
+      divided by `sigma` if given); `residual_rms_by_output`: RMS residual of each output, in
+      its own units; `noise_variance`: the residual variance `s^2` (of the residuals divided
+      by `sigma`).
+    - `converged`, `iterations`: of the best start; `history`: its loss at every iteration
+      (Adam steps, then the polishing method's over each horizon), `stages`: the iterations
+      at which each stage (Adam, then each horizon) begins; `restart_losses`: the final loss
+      of every start that was run.
+    """
+
+    values: dict[str, Array]
+    std: dict[str, Array]
+    identifiable: dict[str, bool]
+    notes: tuple[str, ...]
+    scene: Scene
+    y0: State
+    u: Array
+    components: tuple[str, ...]
+    covariance: Array
+    loss: float
+    residual_rms: float
+    residual_rms_by_output: dict[str, float]
+    noise_variance: float
+    converged: bool
+    iterations: int
+    history: np.ndarray
+    stages: tuple[int, ...]
+    restart_losses: np.ndarray
+
+
+def _rms_by_output(r, obs, padded, sigmas):
+    out, start = {}, 0
+    for (name, d), sigma in zip(obs.items(), sigmas):
+        width = int(np.prod(d.shape[1:]))
+        part = r[start:start + padded * width]
+        start += padded * width
+        out[name] = float(np.sqrt(np.sum(part**2) / d.size) * np.max(np.asarray(sigma)))
+    return out
+
+
+def _as_key(key):
+    if key is None:
+        return jax.random.PRNGKey(0)
+    if isinstance(key, int):
+        return jax.random.PRNGKey(key)
+    return key
+
+
+def _dtype(ts, data):
+    """float32 if the times and every data array are float32; else the default float type."""
+    arrays = [ts, *data.values()]
+    if all(getattr(a, "dtype", None) == np.float32 for a in arrays):
+        return jnp.dtype(jnp.float32)
+    return jnp.dtype(jnp.result_type(float))
+
+
+def _check_names(kind: str, names, allowed) -> None:
+    unknown = [n for n in names if n not in allowed]
+    if unknown:
+        raise ParameterError(
+            f"{kind}={unknown}: not in this scene; allowed are {sorted(allowed)}"
+        )
+
+
+_SHAPES: dict[Any, dict[str, tuple[int, ...]]] = {}
+
+
+def _output_shapes(scene, dtype) -> dict[str, tuple[int, ...]]:
+    """Names and shapes of the scene's outputs (traced once per scene structure)."""
+    leaves, treedef = jax.tree_util.tree_flatten(scene)
+    key = (treedef, tuple(jnp.shape(x) for x in leaves), jnp.dtype(dtype))
+    if key not in _SHAPES:
+        zeros = {k: jnp.zeros(shape, dtype) for k, shape in scene.state_shapes().items()}
+        shapes = jax.eval_shape(lambda: scene.outputs(jnp.zeros((), dtype), zeros))
+        _SHAPES[key] = {k: tuple(v.shape) for k, v in shapes.items()}
+    return _SHAPES[key]
+
+
+def _prepare_data(shapes, ts, data, outputs, dtype):
+    ts = np.asarray(ts)
+    if ts.dtype.kind not in "iuf" or ts.ndim != 1:
+        raise ParameterError(f"ts has shape {ts.shape}: expected a 1-D array of times")
+    if not np.all(np.isfinite(ts)):
+        raise ParameterError(f"ts={format_value(ts)}: times must be finite")
+    if ts.size < 3:
+        raise ParameterError(f"ts has {ts.size} samples: at least 3 are needed")
+    if np.any(np.diff(ts) <= 0):
+        i = int(np.argmax(np.diff(ts) <= 0))
+        raise ParameterError(
+            f"ts[{i + 1}]={ts[i + 1]:g}: times must be strictly increasing "
+            f"(the previous time is {ts[i]:g})"
+        )
+    out = {}
+    for name in outputs:
+        arr = np.asarray(data[name])
+        if arr.dtype.kind not in "iuf":
+            raise ParameterError(f"data[{name!r}]: expected real numbers, got {arr.dtype}")
+        expected = (ts.size,) + shapes[name]
+        if arr.shape != expected:
+            raise ParameterError(
+                f"data[{name!r}] has shape {arr.shape}: expected {expected} "
+                f"({ts.size} samples of the output {name!r})"
+            )
+        if not np.all(np.isfinite(arr)):
+            raise ParameterError(f"data[{name!r}]: values must be finite")
+        out[name] = arr.astype(dtype)
+    return ts.astype(dtype), out
+
+
+def _pad(ts, data, bucket=_BUCKET):
+    """Pad to a multiple of `bucket` samples by repeating the last one with zero weight."""
+    n = ts.size
+    size = max(bucket, int(math.ceil(n / bucket)) * bucket)
+    weights = np.zeros(size, ts.dtype)
+    weights[:n] = 1
+    ts_p = np.concatenate([ts, np.full(size - n, ts[-1], ts.dtype)])
+    data_p = {k: np.concatenate([v, np.repeat(v[-1:], size - n, axis=0)]) for k, v in data.items()}
+    return ts_p, data_p, weights
+
+
+@eqx.filter_jit
+def _starting_point(maps, starting, names):
+    return jnp.concatenate([jnp.ravel(m.to_unconstrained(starting[n]))
+                            for n, m in zip(names, maps)]).astype(jnp.result_type(float))
+
+
+@eqx.filter_jit
+def _scene_and_state(problem, u):
+    return problem.scene_and_state(u)
+
+
+@dataclasses.dataclass(frozen=True)
+class _Setup:
+    problem: _Problem
+    u0: Array
+    components: tuple[str, ...]
+    ts: np.ndarray
+    obs: dict[str, np.ndarray]
+    ts_p: Array
+    obs_p: dict[str, Array]
+    weights: Array
+    n_obs: int
+    dtype: Any
+
+
+def _setup(scene, ts, data, parameters, initial, y0, sigma, rtol, atol, max_steps) -> _Setup:
+    """Check the inputs and build the residual function, the starting point and padded data."""
+    if not isinstance(scene, Scene):
+        raise ParameterError(f"scene={scene!r}: expected a jaxdyn.Scene")
+    if not isinstance(parameters, Mapping):
+        raise ParameterError("parameters: expected a mapping of names to parameterisations")
+    if not isinstance(initial, Mapping):
+        initial = {name: Unconstrained() for name in initial}
+    if not isinstance(data, Mapping) or not data:
+        raise ParameterError("data: expected a mapping of output names to arrays")
+    for name, m in {**parameters, **initial}.items():
+        if not isinstance(m, AbstractParameterisation):
+            raise ParameterError(f"{name}: {m!r} is not a parameterisation")
+    _check_names("parameters", parameters, scene.parameters())
+    state_shapes = scene.state_shapes()
+    _check_names("initial", initial, state_shapes)
+    outputs = tuple(data)
+    dtype = _dtype(ts, data)
+    shapes = _output_shapes(scene, dtype)
+    _check_names("data", outputs, shapes)
+    recast = {k: v.astype(dtype) for k, v in scene.parameters().items()
+              if isinstance(v, jax.Array) and jnp.issubdtype(v.dtype, jnp.floating)
+              and v.dtype != dtype}
+    if recast:
+        scene = scene.replace(recast)
+    ts, obs = _prepare_data(shapes, ts, data, outputs, dtype)
+    n_samples = ts.size
+
+    if y0 is None:
+        observed = {k: obs[k][0] for k in outputs if k in state_shapes}
+        try:
+            y0 = scene.state(**observed)
+        except ParameterError as e:
+            raise ParameterError(f"y0: no starting initial state could be built ({e}); "
+                                 "pass y0=scene.state(...)") from None
+    y0 = {k: jnp.asarray(v, dtype) for k, v in scene.check_state(y0).items()}
+    current = scene.parameters()
+    starting = {**{k: jnp.asarray(current[k], dtype) for k in parameters},
+                **{k: y0[k] for k in initial}}
+    maps = tuple(m.bind(starting[k]) for k, m in {**parameters, **initial}.items())
+    names = tuple(parameters) + tuple(initial)
+    components = sum((m.components(n) for n, m in zip(names, maps)), ())
+    # The optimiser works in the default float type (optimistix's trust region does), the
+    # simulation in the dtype of the data; results are reported in the latter.
+    u0 = _starting_point(maps, starting, names)
+    n_obs = n_samples * sum(int(np.prod(obs[k].shape[1:])) for k in outputs)
+    if n_obs <= u0.size:
+        raise ParameterError(
+            f"data has {n_samples} samples ({n_obs} values): more than {u0.size} values are "
+            f"needed to fit {u0.size} unknowns ({', '.join(components)})"
+        )
+    sigma = dict(sigma or {})
+    _check_names("sigma", sigma, outputs)
+    ts_p, obs_p, weights = _pad(ts, obs)
+    problem = _Problem(
+        scene=scene, y0=y0, names=names, is_state=tuple(n in initial for n in names),
+        maps=maps, sizes=tuple(m.size() for m in maps), outputs=outputs,
+        sigma=tuple(jnp.asarray(sigma.get(k, 1.0), dtype) for k in outputs),
+        rtol=jnp.asarray(rtol, dtype), atol=jnp.asarray(atol, dtype), max_steps=max_steps,
+        dtype=dtype,
+    )
+    return _Setup(problem, u0, components, ts, obs, jnp.asarray(ts_p),
+                  {k: jnp.asarray(v) for k, v in obs_p.items()}, jnp.asarray(weights), n_obs,
+                  dtype)
+
+
+def fit(
+    scene: Scene,
+    ts: Float[ArrayLike, " N"],
+    data: Mapping[str, ArrayLike],
+    *,
+    parameters: Mapping[str, AbstractParameterisation],
+    initial: Mapping[str, AbstractParameterisation] | Sequence[str] = (),
+    y0: State | None = None,
+    sigma: Mapping[str, ArrayLike] | None = None,
+    restarts: int = 8,
+    agree: int = 2,
+    key: Any = None,
+    method: str = "lm",
+    adam_steps: int = 0,
+    learning_rate: float = 0.05,
+    max_iter: int = 200,
+    horizons: Sequence[float] = (0.25, 0.5, 1.0),
+    tol: float | None = None,
+    rtol: float = 1e-8,
+    atol: float = 1e-10,
+    max_steps: int = 100_000,
+    identifiability_tol: float | None = None,
+    notes: Mapping[str, str] | None = None,
+    reweight: bool = False,
+    progress: bool = False,
+) -> FitResult:
+    r"""Fit parameters and initial state of a scene to sampled outputs (least squares).
+
+    **Arguments:**
+
+    - `scene`: the [`jaxdyn.Scene`][]; parameters not fitted keep their values (known).
+    - `ts`: sample times, strictly increasing; the first is the time of the initial state.
+    - `data`: observed outputs by name (any of `scene.output_names()`, e.g. `"omega"` or
+      `"theta"`), each of shape `(len(ts), *output_shape)`.
+    - `parameters`: the parameters to fit, by the names of `scene.parameters()`, each with its
+      parameterisation ([`jaxdyn.ValidInertia`][], [`jaxdyn.Positive`][],
+      [`jaxdyn.Unconstrained`][]); the starting value is the scene's current value.
+    - `initial`: the initial-state variables to fit (names of `scene.state_shapes()`), as a
+      sequence ([`jaxdyn.Unconstrained`][]) or a mapping to parameterisations.
+    - `y0`: the starting (and, for variables not fitted, known) initial state; by default the
+      first sample of each observed state variable and the scene's defaults for the rest.
+    - `sigma`: noise scale of each output (weights `1/sigma`); needed only to combine outputs
+      with different units. The noise variance itself is estimated from the residuals.
+    - `restarts`: number of starting points: the given one, then random ones drawn by each
+      parameterisation's `restart`. The best final loss wins.
+    - `agree`: stop early once this many converged starts agree on the best loss (to a
+      relative `1e-5`): the minimum has then been found from independent starts.
+    - `key`: a JAX PRNG key or an integer seed for the restarts.
+    - `method`: `"lm"` (Levenberg--Marquardt from optimistix's damped Newton descent and
+      trust region; default) or `"lbfgs"` (optax's L-BFGS with a zoom line search).
+    - `adam_steps`, `learning_rate`: Adam steps (optax) taken from each start before the
+      polishing method (default 0 for `"lm"`, which converges from random starts on its own;
+      use e.g. 200 with `"lbfgs"`).
+    - `max_iter`: iteration budget of the polishing method per start and horizon.
+    - `horizons`: continuation in the time span: each start is fitted to the samples up to
+      these fractions of the span in turn (integrating only that far), the last of which must
+      be 1. A short record has few local minima, so its optimum is found from far away, and
+      it is a good start for a longer one (a record over many periods otherwise has many).
+    - `tol`: convergence tolerance of the polishing method on the whole record (default
+      `1e-8` in float64, `1e-5` in float32); shorter horizons use `max(tol, 1e-4)`.
+    - `rtol`, `atol`, `max_steps`: of the integration ([`jaxdyn.simulate`][]).
+    - `identifiability_tol`: a component whose Jacobian column, at the starting point, is
+      smaller than this times the largest column is reported as not identifiable and kept at
+      its starting value (default `1e-6` in float64, `1e-3` in float32). At the optimum, a
+      singular value of the column-scaled Jacobian below this times the largest is reported
+      as a combination of components that the data do not determine (say `g` and `L` of the
+      rod, of which only `g/L` enters).
+    - `notes`: explanations to attach, by component name, when a component is found not
+      identifiable (for example why a rod's mass does not enter its angle).
+    - `reweight`: with several outputs in different units and no `sigma`: after the fit,
+      weight each output by the RMS of its own residuals and refit from the optimum, so that
+      each output counts by its noise level (and the intervals use each output's noise).
+    - `progress`: show a tqdm progress bar over the iterations of all starts.
+
+    **Returns:**
+
+    A [`jaxdyn.FitResult`][].
+
+    For example, the normalised inertia tensor and initial rates of a torque-free body from
+    body rates `w` (shape `(N, 3)`) sampled at `ts`:
+
+    ```python
+    scene = jd.Scene(jd.RigidBody([0.6, 0.8, 1.0]))  # the starting guess
+    res = jd.fit(scene, ts, {"omega": w}, parameters={"inertia": jd.ValidInertia()},
+                 initial=["omega"])
+    res.values["inertia.principal_moments"], res.std["inertia.principal_moments"]
+    ```
+
+    Terminating events of the scene are off during the fit: the samples define the time span,
+    and a trial parameter set must not end the run before the last sample. The fit is
+    compiled once per scene structure, set of fitted names and data length (padded to a
+    multiple of 32 samples): further fits, restarts and new data of similar length reuse it.
+    """
+    if method not in ("lm", "lbfgs"):
+        raise ParameterError(f"method={method!r}: allowed are 'lm', 'lbfgs'")
+    for field, value, low in (("restarts", restarts, 1), ("agree", agree, 1),
+                              ("max_iter", max_iter, 1), ("adam_steps", adam_steps, 0)):
+        if not isinstance(value, int) or value < low:
+            kind = "a positive" if low else "a non-negative"
+            raise ParameterError(f"{field}={value!r}: must be {kind} integer")
+    horizons = tuple(float(h) for h in horizons)
+    if not horizons or horizons[-1] != 1.0 or any(not 0 < h <= 1 for h in horizons):
+        raise ParameterError(f"horizons={horizons}: fractions in (0, 1], the last one 1")
+    setup = _setup(scene, ts, data, parameters, initial, y0, sigma, rtol, atol, max_steps)
+    problem, u0, ts, obs = setup.problem, setup.u0, setup.ts, setup.obs
+    ts_p, obs_p, weights = setup.ts_p, setup.obs_p, setup.weights
+    maps, components, n_obs, dtype = problem.maps, setup.components, setup.n_obs, setup.dtype
+    outputs = problem.outputs
+    eps = float(jnp.finfo(dtype).eps)
+    if tol is None:
+        tol = 1e-8 if eps < 1e-10 else 1e-5
+    if identifiability_tol is None:
+        identifiability_tol = 1e-6 if eps < 1e-10 else 1e-3
+    # Structural identifiability: a zero Jacobian column at the start (the column of a
+    # parameter that the outputs do not depend on) stays zero everywhere.
+    _, J0 = _jacobian(problem, u0, ts_p, obs_p, weights)
+    norms = np.linalg.norm(np.asarray(J0), axis=0)
+    free_np = norms > identifiability_tol * norms.max()
+    free = jnp.asarray(free_np)
+
+    key = _as_key(key)
+    starts = [u0]
+    for k in jax.random.split(key, restarts - 1) if restarts > 1 else []:
+        keys = jax.random.split(k, len(maps))
+        u = jnp.concatenate([m.restart(kk, part) for m, kk, part in
+                             zip(maps, keys, problem.split(u0))]).astype(u0.dtype)
+        starts.append(jnp.where(free, u, u0))
+
+    polish = _levenberg_marquardt if method == "lm" else _lbfgs
+    tol_a = jnp.asarray(tol, u0.dtype)
+    tol_early = jnp.asarray(max(tol, 1e-4), u0.dtype)
+    lr = jnp.asarray(learning_rate, u0.dtype)
+
+    def _run_start(u, horizons=horizons, warm_up=True):
+        history, stages, iterations = [], [], 0
+        if adam_steps and warm_up:
+            u, losses = _adam(problem, u, free, ts_p, obs_p, weights, lr, steps=adam_steps,
+                              progress=progress)
+            u = jnp.where(free, u, u0)
+            history.append(np.asarray(losses))
+            stages.append(0)
+            iterations += adam_steps
+        for h in horizons:
+            # Samples up to `t_h` count; the integration stops there too (later sample times
+            # are clipped to it: same shapes, so no recompilation).
+            t_h = ts[ts <= ts[0] + h * (ts[-1] - ts[0])][-1]
+            w = jnp.where(ts_p <= t_h, weights, 0.0)
+            stage_tol = tol_a if h == 1.0 else tol_early
+            u, loss, k, ok, hist = polish(problem, u, free, jnp.minimum(ts_p, t_h), obs_p, w,
+                                          stage_tol, max_iter=max_iter, progress=progress)
+            u = jnp.where(free, u, u0)
+            k = int(k)
+            history.append(np.asarray(hist)[:k])
+            stages.append(iterations)
+            iterations += k
+        loss = float(loss)
+        return {"loss": loss if np.isfinite(loss) else np.inf, "u": u, "converged": bool(ok),
+                "iterations": iterations, "history": np.concatenate(history),
+                "stages": tuple(stages)}
+
+    runs = []
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        total = restarts * (adam_steps + len(horizons) * max_iter)
+        bar = tqdm(total=total, desc="fit", unit="it")
+        _BAR["bar"] = bar
+    try:
+        for u_start in starts:
+            runs.append(_run_start(u_start))
+            if bar is not None:
+                bar.update(max_iter * len(horizons) + adam_steps - runs[-1]["iterations"])
+            losses = np.array([run["loss"] for run in runs])
+            agreeing = [run["converged"] and run["loss"] <= losses.min() * (1 + 1e-5)
+                        for run in runs]
+            if sum(agreeing) >= agree:
+                break
+    finally:
+        if bar is not None:
+            bar.total = bar.n  # the starts left out after agreement
+            bar.close()
+            _BAR.pop("bar", None)
+
+    best = runs[int(np.argmin([run["loss"] for run in runs]))]
+    loss, u = best["loss"], best["u"]
+    r, J = _jacobian(problem, u, ts_p, obs_p, weights)
+    if reweight and len(outputs) > 1:
+        # Weight each output by its own residual scale, and refit from the optimum (the
+        # same compiled functions: `sigma` is an array of the problem).
+        rms = _rms_by_output(np.asarray(r), obs, ts_p.size, problem.sigma)
+        problem = eqx.tree_at(lambda p: p.sigma, problem,
+                              tuple(jnp.asarray(rms[k], dtype) for k in outputs))
+        again = _run_start(u, horizons=(1.0,), warm_up=False)
+        best = {**again, "history": np.concatenate([best["history"], again["history"]]),
+                "stages": best["stages"] + tuple(best["iterations"] + s_
+                                                 for s_ in again["stages"]),
+                "iterations": best["iterations"] + again["iterations"]}
+        loss, u = best["loss"], best["u"]
+        r, J = _jacobian(problem, u, ts_p, obs_p, weights)
+    r, cov, values, std, s2, sv, vt = _uncertainty(problem, u, free, r, J, n_obs)
+
+    identifiable = {c: bool(f) for c, f in zip(components, free_np)}
+    notes = dict(notes or {})
+    lines = []
+    for c, f in identifiable.items():
+        if not f:
+            why = notes.get(c, "the outputs do not depend on it (its Jacobian column is zero)")
+            lines.append(f"{c} is not identifiable from {', '.join(outputs)}: {why}; "
+                         "kept at its starting value")
+    sv, vt = np.asarray(sv), np.asarray(vt)
+    n_free = int(free_np.sum())
+    if n_free and sv[n_free - 1] < identifiability_tol * sv[0]:
+        v = vt[n_free - 1]
+        involved = [c for c, x in zip(components, v) if abs(x) > 0.1]
+        lines.append(f"only a combination of {', '.join(involved)} is determined by the data "
+                     f"(condition number {sv[0] / sv[n_free - 1]:.1e})")
+    scene_fit, y0_fit = _scene_and_state(problem, u)
+    return FitResult(
+        values=values, std=std, identifiable=identifiable, notes=tuple(lines),
+        scene=scene_fit, y0=y0_fit, u=u, components=components, covariance=cov,
+        loss=float(loss), residual_rms=float(np.sqrt(2 * loss / n_obs)),
+        residual_rms_by_output=_rms_by_output(np.asarray(r), obs, ts_p.size, problem.sigma),
+        noise_variance=float(s2), converged=best["converged"], iterations=best["iterations"],
+        history=best["history"], stages=best["stages"],
+        restart_losses=np.array([run["loss"] for run in runs]),
+    )
+

@@ -1,0 +1,265 @@
+r"""Parameterisations: maps from unconstrained vectors to physically valid parameter values.
+
+The fitter works in an unconstrained space $u \in \mathbb{R}^n$; each fitted quantity owns a
+slice of $u$ and a parameterisation that turns it into a valid value, so that every iterate of
+every optimiser is physical by construction (no constraints, no projections, no clipping).
+"""
+
+import abc
+from typing import ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float, PRNGKeyArray
+
+from .._inertia import principal_axes
+from .._rotations import (
+    dcm_to_mrp,
+    mrp_from_quat,
+    mrp_to_dcm,
+    quat_from_mrp,
+    quat_multiply,
+    quat_normalize,
+)
+from .._validation import ParameterError
+
+
+class AbstractParameterisation(eqx.Module):
+    """Maps an unconstrained vector `u` to a parameter value.
+
+    The fitter first calls `bind(value)` with the starting value (this fixes the shape, or a
+    reference point); the bound parameterisation then gives `size()`, `components(name)`,
+    `to_unconstrained(value)` (the starting point), `__call__(u)` (the value) and, optionally,
+    `restart(key, u)` (a random starting point for a restart) and `summary(name, u, free)`
+    (derived quantities reported with 1-sigma intervals, such as principal moments).
+    """
+
+    def bind(self, value: Array) -> "AbstractParameterisation":
+        """A copy anchored at the starting value `value` (its shape, or a reference)."""
+        return self
+
+    @abc.abstractmethod
+    def size(self) -> int:
+        """Number of unconstrained components."""
+
+    @abc.abstractmethod
+    def components(self, name: str) -> tuple[str, ...]:
+        """Names of the unconstrained components (used to report what is not identifiable)."""
+
+    @abc.abstractmethod
+    def to_unconstrained(self, value: Array) -> Float[Array, " n"]:
+        """The unconstrained vector of a valid value (the inverse of `__call__`)."""
+
+    @abc.abstractmethod
+    def __call__(self, u: Float[Array, " n"]) -> Array:
+        """The parameter value of an unconstrained vector."""
+
+    def restart(self, key: PRNGKeyArray, u: Float[Array, " n"]) -> Float[Array, " n"]:
+        """A random starting point for a restart, given the first starting point `u`.
+
+        The default keeps `u` (for quantities that the data pin down well, such as an initial
+        state read off the first sample).
+        """
+        return u
+
+    def summary(
+        self, name: str, u: Float[Array, " n"], free: Bool[Array, " n"]
+    ) -> dict[str, Array]:
+        """Quantities to report, as differentiable functions of `u` (their 1-sigma intervals
+        are propagated from the covariance of `u`).
+
+        `free` marks the components that were fitted; the others were found not identifiable
+        and kept at their starting values. The default reports the value itself.
+        """
+        return {name: self(u)}
+
+
+def _element_names(name: str, shape: tuple[int, ...]) -> tuple[str, ...]:
+    if shape == ():
+        return (name,)
+    return tuple(f"{name}[{i}]" for i in range(int(np.prod(shape))))
+
+
+class Unconstrained(AbstractParameterisation):
+    """Any real value (the identity map), for example an initial state.
+
+    **Arguments:**
+
+    - `spread`: standard deviation of the random perturbation of restarts (default 0: every
+      restart starts from the same value).
+    """
+
+    spread: float = 0.0
+    shape: tuple[int, ...] | None = eqx.field(static=True, default=None)
+
+    def bind(self, value):
+        return Unconstrained(self.spread, tuple(jnp.shape(value)))
+
+    def size(self):
+        return int(np.prod(self.shape))
+
+    def components(self, name):
+        return _element_names(name, self.shape)
+
+    def to_unconstrained(self, value):
+        return jnp.ravel(jnp.asarray(value))
+
+    def __call__(self, u):
+        return jnp.reshape(u, self.shape)
+
+    def restart(self, key, u):
+        if self.spread == 0:
+            return u
+        return u + self.spread * jax.random.normal(key, u.shape, u.dtype)
+
+
+class Positive(AbstractParameterisation):
+    """A positive value, `value = exp(u)` (elementwise).
+
+    Fitting the logarithm also makes the steps of an optimiser relative, so that lengths of
+    0.1 m and 10 m are equally easy to fit.
+
+    **Arguments:**
+
+    - `spread`: standard deviation of `log(value)` for the random starting points of restarts
+      (0 starts every restart from the same value).
+    """
+
+    spread: float = 0.5
+    shape: tuple[int, ...] | None = eqx.field(static=True, default=None)
+
+    def bind(self, value):
+        return Positive(self.spread, tuple(jnp.shape(value)))
+
+    def size(self):
+        return int(np.prod(self.shape))
+
+    def components(self, name):
+        return _element_names(name, self.shape)
+
+    def to_unconstrained(self, value):
+        return jnp.log(jnp.ravel(jnp.asarray(value)))
+
+    def __call__(self, u):
+        return jnp.reshape(jnp.exp(u), self.shape)
+
+    def restart(self, key, u):
+        return u + self.spread * jax.random.normal(key, u.shape, u.dtype)
+
+
+class ValidInertia(AbstractParameterisation):
+    r"""A physically valid inertia tensor, by construction.
+
+    Six unconstrained numbers `u = (s, a, b, σ)` give
+
+    $$(x, y, z) = e^{s}\,\mathrm{softmax}(a, b, 0), \qquad
+    (I_1, I_2, I_3) = (y + z,\; x + z,\; x + y), \qquad
+    \mathbf{I} = A \,\mathrm{diag}(I_1, I_2, I_3)\, A^T,$$
+
+    with $A$ the rotation matrix of the modified Rodrigues parameters $σ$
+    ([`jaxdyn.mrp_to_dcm`][]). With $x, y, z > 0$ every moment is positive and smaller than the
+    sum of the other two (the triangle inequality): every iterate is a physical body. $e^s =
+    (I_1 + I_2 + I_3)/2$ carries the scale, `(a, b)` the shape, and the columns of $A$ are the
+    principal axes in the body frame. (A side benefit: $|I_j - I_k| / I_i < 1$ keeps Euler's
+    equations non-stiff for every iterate.)
+
+    Torque-free rates do not change when the tensor is multiplied by a constant, so there the
+    scale component is not identifiable: the fitter finds its Jacobian column to be zero,
+    keeps it fixed, and the reported principal moments are normalised so that the largest is 1.
+    When the scene fixes the scale (a rotor of known momentum, a known torque) the scale is
+    fitted and the moments are absolute.
+
+    Symmetries: permuting the moments together with the axes, or flipping an axis, gives the
+    same tensor. Reported moments are therefore ascending, with the axes as columns under the
+    sign convention of [`jaxdyn.principal_axes`][].
+
+    **Arguments:**
+
+    - `spread`: standard deviation of the shape logits `(a, b)` for the random starting points
+      of restarts (the axes of a restart are drawn uniformly over rotations).
+    """
+
+    spread: float = 1.0
+
+    names: ClassVar[tuple[str, ...]] = ("scale", "shape1", "shape2", "axes1", "axes2", "axes3")
+
+    def size(self):
+        return 6
+
+    def components(self, name):
+        return tuple(f"{name}.{c}" for c in self.names)
+
+    def to_unconstrained(self, value):
+        value = jnp.asarray(value)
+        if value.shape == (3,):
+            moments, axes = value, jnp.eye(3, dtype=value.dtype)
+        elif value.shape == (3, 3):
+            moments, axes = principal_axes(value)
+        else:
+            raise ParameterError(
+                f"inertia has shape {value.shape}: expected 3 principal moments or a 3x3 tensor"
+            )
+        total = jnp.sum(moments)
+        # x = (I2 + I3 - I1) / 2 and so on. A flat plate (x = 0) is the limit at infinity,
+        # where the gradient vanishes: a start there is moved slightly inside.
+        xyz = jnp.maximum(0.5 * total - moments, 0.02 * total)
+        logs = jnp.log(xyz)
+        scale = jnp.log(jnp.sum(xyz))
+        return jnp.concatenate([scale[None], logs[:2] - logs[2], dcm_to_mrp(axes)])
+
+    def moments(self, u: Float[Array, "6"]) -> Float[Array, "3"]:
+        """The principal moments `(I1, I2, I3)`, in the order of the columns of `axes(u)`."""
+        logits = jnp.stack([u[1], u[2], jnp.zeros_like(u[1])])
+        x, y, z = jnp.exp(u[0]) * jax.nn.softmax(logits)
+        return jnp.stack([y + z, x + z, x + y])
+
+    def axes(self, u: Float[Array, "6"]) -> Float[Array, "3 3"]:
+        """The principal axes (columns) in the body frame, in the order of `moments(u)`."""
+        return mrp_to_dcm(u[3:6])
+
+    def __call__(self, u):
+        axes = self.axes(u)
+        return (axes * self.moments(u)) @ axes.T
+
+    def restart(self, key, u):
+        k1, k2 = jax.random.split(key)
+        shape = self.spread * jax.random.normal(k1, (2,), u.dtype)
+        q = quat_normalize(jax.random.normal(k2, (4,), u.dtype))  # uniform over rotations
+        return jnp.concatenate([u[:1], shape, mrp_from_quat(q)])
+
+    def summary(self, name, u, free):
+        moments = jnp.sort(self.moments(u))
+        moments = jnp.where(free[0], moments, moments / moments[2])
+        _, axes = principal_axes(self(u))
+        return {
+            name: self(u),
+            f"{name}.principal_moments": moments,
+            f"{name}.principal_axes": axes,
+        }
+
+
+class UnitQuaternion(AbstractParameterisation):
+    r"""A unit quaternion (scalar first) as a rotation from a reference, `q = q_ref ⊗ q(σ)`.
+
+    Three modified Rodrigues parameters `σ` (zero at the reference, the starting value) avoid
+    both the norm constraint and the `q`/`-q` ambiguity of fitting four numbers.
+    """
+
+    reference: Float[Array, "4"] | None = None
+
+    def bind(self, value):
+        return UnitQuaternion(quat_normalize(jnp.asarray(value)))
+
+    def size(self):
+        return 3
+
+    def components(self, name):
+        return tuple(f"{name}.{c}" for c in ("sigma1", "sigma2", "sigma3"))
+
+    def to_unconstrained(self, value):
+        return jnp.zeros(3, jnp.asarray(value).dtype)
+
+    def __call__(self, u):
+        return quat_multiply(self.reference.astype(u.dtype), quat_from_mrp(u))
