@@ -30,6 +30,29 @@ def _gauss_legendre(f, a, b):
     return half * jnp.sum(w * f(0.5 * (a + b) + half * x))
 
 
+def rod_start(name: str, dtype, attitude: bool, theta, theta_dot, unknown):
+    """Checked initial angle and rate of a rod standing on a floor (shared by the rod bodies)."""
+    from ._validation import raise_if_violated
+
+    if unknown:
+        raise ParameterError(
+            f"unknown state variables {sorted(unknown)} for {name}: allowed are theta, theta_dot"
+        )
+    if attitude:
+        raise ParameterError(f"attitude=True: {name} has no 3-D attitude (its state starts "
+                             "with theta, theta_dot)")
+    if theta is None:
+        raise ParameterError("theta is required: the angle from the vertical in rad")
+    theta = as_float_array("theta", theta, (), dtype)
+    theta_dot = as_float_array("theta_dot", theta_dot, (), dtype)
+    raise_if_violated([
+        ("theta", theta, ~(jnp.abs(theta) <= jnp.pi / 2),
+         "must be finite and within [-pi/2, pi/2] (the rod cannot start below the floor)"),
+        ("theta_dot", theta_dot, ~jnp.isfinite(theta_dot), "must be finite"),
+    ])
+    return theta, theta_dot
+
+
 class FallingRod(AbstractBody):
     """A slender rod on a frictionless floor, its lower tip on the floor.
 
@@ -70,29 +93,8 @@ class FallingRod(AbstractBody):
     def initial_state(
         self, attitude: bool, theta: Any = None, theta_dot: Any = 0.0, **unknown: Any
     ) -> State:
-        if unknown:
-            raise ParameterError(
-                f"unknown state variables {sorted(unknown)} for a falling rod: "
-                "allowed are theta, theta_dot"
-            )
-        if attitude:
-            raise ParameterError(
-                "attitude=True: a falling rod has no 3-D attitude (its state is theta, theta_dot)"
-            )
-        if theta is None:
-            raise ParameterError("theta is required: the angle from the vertical in rad")
-        dtype = self.length.dtype
-        theta = as_float_array("theta", theta, (), dtype)
-        theta_dot = as_float_array("theta_dot", theta_dot, (), dtype)
-        from ._validation import raise_if_violated
-
-        raise_if_violated(
-            [
-                ("theta", theta, ~(jnp.abs(theta) <= jnp.pi / 2),
-                 "must be finite and within [-pi/2, pi/2] (the rod cannot start below the floor)"),
-                ("theta_dot", theta_dot, ~jnp.isfinite(theta_dot), "must be finite"),
-            ]
-        )
+        theta, theta_dot = rod_start("a falling rod", self.length.dtype, attitude, theta,
+                                     theta_dot, unknown)
         return {"theta": theta, "theta_dot": theta_dot}
 
     def angular_acceleration(self, theta, theta_dot):

@@ -67,7 +67,8 @@ from jaxtyping import Array, ArrayLike, Float
 
 from ._body import AbstractBody
 from ._custom_types import Scalar, State
-from ._validation import Check, ParameterError, as_float_array, positive_check, raise_if_violated
+from ._rod import rod_start
+from ._validation import Check, as_float_array, positive_check, raise_if_violated
 
 STICK, SLIP, FLIGHT = 0.0, 1.0, 2.0
 # Value of an event that does not apply to the current mode.
@@ -146,26 +147,9 @@ class RoughFloorRod(AbstractBody):
     def initial_state(
         self, attitude: bool, theta: Any = None, theta_dot: Any = 0.0, **unknown: Any
     ) -> State:
-        if unknown:
-            raise ParameterError(
-                f"unknown state variables {sorted(unknown)} for a rough-floor rod: "
-                "allowed are theta, theta_dot"
-            )
-        if attitude:
-            raise ParameterError(
-                "attitude=True: a rough-floor rod has no 3-D attitude (its state is theta, "
-                "theta_dot and its tip's position)"
-            )
-        if theta is None:
-            raise ParameterError("theta is required: the angle from the vertical in rad")
         dtype = self.length.dtype
-        theta = as_float_array("theta", theta, (), dtype)
-        theta_dot = as_float_array("theta_dot", theta_dot, (), dtype)
-        raise_if_violated([
-            ("theta", theta, ~(jnp.abs(theta) <= jnp.pi / 2),
-             "must be finite and within [-pi/2, pi/2] (the rod cannot start below the floor)"),
-            ("theta_dot", theta_dot, ~jnp.isfinite(theta_dot), "must be finite"),
-        ])
+        theta, theta_dot = rod_start("a rough-floor rod", dtype, attitude, theta, theta_dot,
+                                     unknown)
         zero = jnp.zeros((), dtype)
         y = {"theta": theta, "theta_dot": theta_dot}
         for name in ("tip_x", "tip_vx", "tip_y", "tip_vy", "friction_work", "mode", "slip_sign",

@@ -17,7 +17,6 @@ from scipy.integrate import solve_ivp
 from scipy.spatial.transform import Rotation
 
 import jaxdyn as jd
-from jaxdyn._cli import main
 from jaxdyn._identify import _fit
 
 SAMPLES = 64
@@ -271,13 +270,7 @@ def test_intervals_cover_the_truth():
 # -- command line -------------------------------------------------------------------------------
 
 
-def run_cli(capsys, *argv):
-    try:
-        status = main(list(argv))
-    except SystemExit as e:
-        status = e.code
-    out, err = capsys.readouterr()
-    return status, out, err
+from test_cli import run_cli  # noqa: E402
 
 
 def write_csv(path, header, columns):
