@@ -25,6 +25,7 @@ from ._free_body import (
     torque_free_omega as torque_free_omega,
     torque_free_period as torque_free_period,
 )
+from ._free_body_attitude import torque_free_attitude as torque_free_attitude
 from ._identify import (
     AbstractParameterisation as AbstractParameterisation,
     FitResult as FitResult,
