@@ -212,9 +212,15 @@ class RigidBody(AbstractBody):
         return out
 
     def exact_final(self, y0, t1, effects, attitude):
-        if effects or attitude:
+        if effects or not self.is_principal:
             return None
-        return t1, {"omega": self.exact_omega(y0["omega"], t1)}
+        out = {"omega": self.exact_omega(y0["omega"], t1)}
+        if attitude:
+            from ._free_body_attitude import torque_free_attitude
+
+            out["quaternion"] = torque_free_attitude(self.inertia, y0["omega"],
+                                                     y0["quaternion"], t1)
+        return t1, out
 
     # -- analytic companion ---------------------------------------------------------------------
 

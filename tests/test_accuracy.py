@@ -63,3 +63,16 @@ def test_method_list_covers_the_issue():
     assert {"Tsit5", "Dopri5", "Dopri8", "RK4", "Kvaerno5", "Splitting2", "Splitting4"} == set(
         names)
     assert dataclasses.is_dataclass(acc.Method)
+
+
+def test_exact_reference_with_attitude():
+    # Scenes that integrate attitude get the exact attitude (elliptic integral of the third kind)
+    # as their reference; it agrees with a tight integration.
+    scene = jd.Scene(jd.RigidBody([1.0, 2.0, 3.0]), attitude=True)
+    y0 = scene.state(omega=[0.3, 0.2, 1.0], quaternion=[0.9, 0.1, -0.3, 0.2])
+    problem = acc.Problem("attitude", "free body with attitude", scene, y0, 30.0, 0.1)
+    t_ref, y_ref, source = acc.reference(problem)
+    assert source == "exact"
+    traj = jd.simulate(scene, y0, 30.0, rtol=1e-13, atol=1e-14)
+    for key in ("omega", "quaternion"):
+        assert np.max(np.abs(np.asarray(traj.y_final[key] - y_ref[key]))) < 1e-11
