@@ -30,10 +30,23 @@ def _gauss_legendre(f, a, b):
     return half * jnp.sum(w * f(0.5 * (a + b) + half * x))
 
 
-def rod_start(name: str, dtype, attitude: bool, theta, theta_dot, unknown):
-    """Checked initial angle and rate of a rod standing on a floor (shared by the rod bodies)."""
+def check_angle_rate(dtype, theta, theta_dot, names=("theta", "theta_dot"), shape=()):
+    """An angle within [-pi/2, pi/2] (a rod cannot start below the floor) and a finite rate, as
+    arrays of `dtype`; the error names the fields as `names`."""
     from ._validation import raise_if_violated
 
+    theta = as_float_array(names[0], theta, shape, dtype)
+    theta_dot = as_float_array(names[1], theta_dot, shape, dtype)
+    raise_if_violated([
+        (names[0], theta, ~(jnp.abs(theta) <= jnp.pi / 2),
+         "must be finite and within [-pi/2, pi/2] (the rod cannot start below the floor)"),
+        (names[1], theta_dot, ~jnp.isfinite(theta_dot), "must be finite"),
+    ])
+    return theta, theta_dot
+
+
+def rod_start(name: str, dtype, attitude: bool, theta, theta_dot, unknown):
+    """Checked initial angle and rate of a rod standing on a floor (shared by the rod bodies)."""
     if unknown:
         raise ParameterError(
             f"unknown state variables {sorted(unknown)} for {name}: allowed are theta, theta_dot"
@@ -43,14 +56,7 @@ def rod_start(name: str, dtype, attitude: bool, theta, theta_dot, unknown):
                              "with theta, theta_dot)")
     if theta is None:
         raise ParameterError("theta is required: the angle from the vertical in rad")
-    theta = as_float_array("theta", theta, (), dtype)
-    theta_dot = as_float_array("theta_dot", theta_dot, (), dtype)
-    raise_if_violated([
-        ("theta", theta, ~(jnp.abs(theta) <= jnp.pi / 2),
-         "must be finite and within [-pi/2, pi/2] (the rod cannot start below the floor)"),
-        ("theta_dot", theta_dot, ~jnp.isfinite(theta_dot), "must be finite"),
-    ])
-    return theta, theta_dot
+    return check_angle_rate(dtype, theta, theta_dot)
 
 
 class FallingRod(AbstractBody):
@@ -185,17 +191,8 @@ class FallingRod(AbstractBody):
     # -- analytic companions --------------------------------------------------------------------
 
     def _check_start(self, theta0, theta_dot0):
-        from ._validation import raise_if_violated
-
-        dtype = self.length.dtype
-        theta0 = as_float_array("theta0", theta0, None, dtype)
-        theta_dot0 = as_float_array("theta_dot0", theta_dot0, None, dtype)
-        raise_if_violated([
-            ("theta0", theta0, ~(jnp.abs(theta0) <= jnp.pi / 2),
-             "must be finite and within [-pi/2, pi/2] (the rod cannot start below the floor)"),
-            ("theta_dot0", theta_dot0, ~jnp.isfinite(theta_dot0), "must be finite"),
-        ])
-        return theta0, theta_dot0
+        return check_angle_rate(self.length.dtype, theta0, theta_dot0,
+                                ("theta0", "theta_dot0"), None)
 
     def rate(self, theta: ArrayLike, theta0: ArrayLike, theta_dot0: ArrayLike = 0.0) -> Array:
         r"""`|theta_dot|` at angle `theta` from the energy integral, starting at

@@ -67,8 +67,8 @@ from jaxtyping import Array, ArrayLike, Float
 
 from ._body import AbstractBody
 from ._custom_types import Scalar, State
-from ._rod import rod_start
-from ._validation import Check, as_float_array, positive_check, raise_if_violated
+from ._rod import check_angle_rate, rod_start
+from ._validation import Check, as_float_array, positive_check
 
 STICK, SLIP, FLIGHT = 0.0, 1.0, 2.0
 # Value of an event that does not apply to the current mode.
@@ -405,13 +405,8 @@ class RoughFloorRod(AbstractBody):
         """
         dtype = self.length.dtype
         theta = as_float_array("theta", theta, None, dtype)
-        theta0 = as_float_array("theta0", theta0, None, dtype)
-        theta_dot0 = as_float_array("theta_dot0", theta_dot0, None, dtype)
-        raise_if_violated([
-            ("theta0", theta0, ~(jnp.abs(theta0) <= jnp.pi / 2),
-             "must be finite and within [-pi/2, pi/2] (the rod cannot start below the floor)"),
-            ("theta_dot0", theta_dot0, ~jnp.isfinite(theta_dot0), "must be finite"),
-        ])
+        theta0, theta_dot0 = check_angle_rate(dtype, theta0, theta_dot0,
+                                              ("theta0", "theta_dot0"), None)
         return self._pivot_forces(theta, theta0, theta_dot0)
 
     @eqx.filter_jit
