@@ -82,7 +82,7 @@ def _setup(moments, omega, perm, parity) -> _Setup:
     sigma = jnp.sign(i3 - i1)
     # Initial phase: cn(u0) = |w1| / A1 >= 0, sn(u0) = sigma s1 s3 w2 / A2, so
     # u0 = F(phi0 | m) = sin(phi0) R_F(cos^2 phi0, m1 + m cos^2 phi0, 1) with |phi0| <= pi/2.
-    x = _safe_div(jnp.abs(w1), a1)
+    x = _safe_div(s1 * w1, a1)  # |w1|, with derivative +1 at w1 = 0 (where s1 = +1)
     y = _safe_div(sigma * s1 * s3 * w2, a2)
     r = jnp.sqrt(x**2 + y**2)
     moving = r > 0
@@ -90,7 +90,16 @@ def _setup(moments, omega, perm, parity) -> _Setup:
     c, s = x / r, y / r
     at_saddle = (m1 == 0) & (c == 0)  # exactly at the intermediate-axis equilibrium
     rf = carlson_rf(c**2, jnp.where(at_saddle, 1.0, m1 + m * c**2), jnp.ones_like(c))
-    u0 = jnp.where(moving & ~at_saddle, s * rf, 0.0)
+    # Near the quarter period (|cos phi0| < |sin phi0|) use F(phi) = K - F(psi) with the
+    # complementary amplitude (sn(K - u) = cd(u)): F(psi) = C R_F(m1 S^2, m1, m1 + m C^2), whose
+    # derivative stays finite at C = 0 (R_F's derivative in an argument that is exactly zero is
+    # infinite). Not on the separatrix, where K is infinite.
+    near_quarter = (jnp.abs(c) < jnp.abs(s)) & (m1 > 0)
+    m1_safe = jnp.where(m1 > 0, m1, 1.0)
+    k = ellipk(m, m1_safe)
+    rf_c = carlson_rf(m1_safe * s**2, m1_safe, m1_safe + m * c**2)
+    u0 = jnp.where(near_quarter, jnp.sign(s) * (k - c * rf_c), s * rf)
+    u0 = jnp.where(moving & ~at_saddle, u0, 0.0)
     return _Setup(
         moments, omega, perm, sign, jnp.stack([a1, a2, a3]),
         jnp.stack([s1, sigma * s1 * s3, s3]), m, m1, lam, u0, at_saddle,

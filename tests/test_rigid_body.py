@@ -241,3 +241,20 @@ def test_float32_rigid_body_keeps_dtype():
                        rtol=1e-5, atol=1e-6)
     assert traj.y_final["omega"].dtype == jnp.float32
     assert traj.y_final["quaternion"].dtype == jnp.float32
+
+
+@pytest.mark.parametrize("omega0", [[0.0, 0.5, 1.0], [1.0, 0.5, 0.0], [0.3, 0.0, 1.0]])
+def test_exact_solution_gradient_when_a_rate_is_zero(omega0):
+    # A zero rate on the axis that fixes the phase (axis 1 above the separatrix, axis 3 below)
+    # puts the initial phase at a quarter period, where R_F's derivative is infinite; the
+    # complementary form keeps the Jacobian right.
+    inertia = jnp.array([1.0, 2.0, 3.0])
+
+    def f(w):
+        return jd.torque_free_omega(inertia, w, 3.0)
+
+    w0 = jnp.array(omega0)
+    jac = np.asarray(jax.jacfwd(f)(w0))
+    fd = np.stack([central_difference(lambda w, i=i: f(w)[i], np.asarray(w0), eps=1e-6)
+                   for i in range(3)])
+    assert np.allclose(jac, fd, rtol=tol(FINITE_DIFF), atol=1e-8)
