@@ -28,9 +28,8 @@ def run_json(capsys, *argv):
     return json.loads(out)
 
 
-def test_default_run_is_the_falling_rod(capsys):
-    out = run_json(capsys, "run")
-    assert out["scene"] == "falling-rod"
+def assert_frictionless_rod_summary(out):
+    """A run's JSON against the frictionless rod's energy integral and quadrature (unit rod)."""
     rod = jd.FallingRod(length=1.0, mass=1.0, g=9.81)
     theta0 = out["parameters"]["theta0"]
     assert np.isclose(out["impact_time"], rod.fall_time(theta0), rtol=1e-9)
@@ -39,6 +38,13 @@ def test_default_run_is_the_falling_rod(capsys):
     theta = np.linspace(theta0, np.pi / 2, 20001)
     n_min = float(np.min(rod.normal_force_energy(theta, theta0))) / 9.81
     assert np.isclose(out["min_normal_force_over_weight"], n_min, rtol=1e-4)
+    return theta0
+
+
+def test_default_run_is_the_falling_rod(capsys):
+    out = run_json(capsys, "run")
+    assert out["scene"] == "falling-rod"
+    assert_frictionless_rod_summary(out)
     assert out["energy_rel_error"] < 1e-8
     assert out["timing"]["run_s"] > 0
 

@@ -13,7 +13,7 @@ import pytest
 from helpers import INTEGRATION, tol
 from scipy.integrate import quad, solve_ivp, trapezoid
 from scipy.optimize import brentq
-from test_cli import run_cli, run_json
+from test_cli import assert_frictionless_rod_summary, run_cli, run_json
 
 import jaxdyn as jd
 
@@ -381,13 +381,7 @@ def test_cli_keys_and_slip_onset(capsys):
 
 def test_cli_frictionless_and_liftoff(capsys):
     out = run_json(capsys, "run", "rough-floor-rod", "--set", "mu_s=0", "--set", "mu_k=0")
-    rod = jd.FallingRod(length=1.0, mass=1.0, g=9.81)
-    theta0 = out["parameters"]["theta0"]
-    assert np.isclose(out["impact_time"], rod.fall_time(theta0), rtol=1e-9)
-    assert np.isclose(out["impact_rate"], rod.rate(np.pi / 2, theta0), rtol=1e-9)
-    theta = np.linspace(theta0, np.pi / 2, 20001)
-    n_min = float(np.min(rod.normal_force_energy(theta, theta0))) / 9.81
-    assert np.isclose(out["min_normal_force_over_weight"], n_min, rtol=1e-4)
+    theta0 = assert_frictionless_rod_summary(out)
     assert out["slip_direction"] == "backward" and np.isclose(out["slip_angle"], theta0)
     out = run_json(capsys, "run", "rough-floor-rod", "--set", "theta0=0.8",
                    "--set", "theta_dot0=-5")
