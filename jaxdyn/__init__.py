@@ -2,6 +2,14 @@
 
 from . import accuracy as accuracy
 from ._body import AbstractBody as AbstractBody
+from ._distributions import (
+    AbstractDistribution as AbstractDistribution,
+    Fixed as Fixed,
+    LogNormal as LogNormal,
+    Normal as Normal,
+    Uniform as Uniform,
+    parse_distribution as parse_distribution,
+)
 from ._effect import AbstractEffect as AbstractEffect
 from ._effects import (
     AttitudeTracking as AttitudeTracking,
@@ -20,6 +28,7 @@ from ._elliptic import (
     ellipk as ellipk,
     ellippi as ellippi,
 )
+from ._ensemble import Ensemble as Ensemble, ensemble as ensemble, final_state as final_state
 from ._free_body import (
     elliptic_parameter as elliptic_parameter,
     torque_free_omega as torque_free_omega,

@@ -130,15 +130,30 @@ class RigidBody(AbstractBody):
     def derivative(self, t: Scalar, y: State, effects: tuple, attitude: bool) -> State:
         omega = y["omega"]
         h_internal, h_rate, torque = self._internal(t, y, effects)
-        h = self.body_momentum(omega)
-        if h_internal is not None:
-            h = h + h_internal
-        rhs = jnp.cross(h, omega)
-        if torque is not None:
-            rhs = rhs + torque
-        if h_rate is not None:
-            rhs = rhs - h_rate
-        dy = {"omega": self._solve(rhs)}
+        if self.is_principal:
+            # Written component by component: batched over many trajectories (ensembles), each
+            # component is then one contiguous row and XLA fuses a whole stage into one pass.
+            w = [omega[i] for i in range(3)]
+            h = [self.inertia[i] * w[i] for i in range(3)]
+            if h_internal is not None:
+                h = [h[i] + h_internal[i] for i in range(3)]
+            rhs = [h[1] * w[2] - h[2] * w[1], h[2] * w[0] - h[0] * w[2],
+                   h[0] * w[1] - h[1] * w[0]]
+            if torque is not None:
+                rhs = [rhs[i] + torque[i] for i in range(3)]
+            if h_rate is not None:
+                rhs = [rhs[i] - h_rate[i] for i in range(3)]
+            dy = {"omega": jnp.stack([rhs[i] / self.inertia[i] for i in range(3)])}
+        else:
+            h = self.body_momentum(omega)
+            if h_internal is not None:
+                h = h + h_internal
+            rhs = jnp.cross(h, omega)
+            if torque is not None:
+                rhs = rhs + torque
+            if h_rate is not None:
+                rhs = rhs - h_rate
+            dy = {"omega": self._solve(rhs)}
         if attitude:
             q = y["quaternion"]
             # Constraint stabilisation: the term vanishes on |q| = 1 (the exact solution is

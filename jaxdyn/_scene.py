@@ -236,6 +236,13 @@ class Scene(eqx.Module):
         `jit`, `grad` or `vmap` are checked here with `eqx.error_if`, so that a simulation with an
         invalid parameter fails with a message naming it instead of returning wrong numbers.
         """
+        flags, msgs = self.violations(y)
+        return eqx.branched_error_if(y, jnp.any(flags), jnp.argmax(flags), msgs)
+
+    def violations(self, y: State) -> tuple[Array, list[str]]:
+        """The checks behind `check`, without raising: a boolean array (true where a check is
+        violated) and the message of each check. Ensembles use it to report an invalid sample
+        as a failed trajectory instead of stopping the batch."""
         checks = list(self.body.checks())
         for e in self.effects:
             checks += e.checks()
@@ -243,7 +250,7 @@ class Scene(eqx.Module):
             checks.append((f"y0[{name!r}]", value, ~jnp.isfinite(value), "must be finite"))
         flags = jnp.stack([jnp.any(violated) for _, _, violated, _ in checks])
         msgs = [f"invalid {field}: {allowed}" for field, _, _, allowed in checks]
-        return eqx.branched_error_if(y, jnp.any(flags), jnp.argmax(flags), msgs)
+        return flags, msgs
 
     # -- reporting ------------------------------------------------------------------------------
 

@@ -1,0 +1,120 @@
+"""Chunk files of an ensemble run: written atomically, checked when read back.
+
+An output directory holds `run.json` (what the run is: a fingerprint of its settings, `n`, the
+chunk size) and one `chunk-NNNNNN.npz` per finished chunk. A chunk file is written to a
+temporary name in the same directory, flushed to disk and renamed (atomic on POSIX), so a
+crash leaves either the whole file or none. Each file records the run's fingerprint, its chunk
+index and a SHA-256 of its arrays; a file that cannot be read, belongs to another run or fails
+its checksum is reported and computed again.
+"""
+
+import hashlib
+import json
+import os
+import tempfile
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from ._validation import ParameterError
+
+_FORMAT = 1
+
+
+def _digest(arrays: dict[str, np.ndarray]) -> str:
+    h = hashlib.sha256()
+    for name in sorted(arrays):
+        a = np.ascontiguousarray(arrays[name])
+        h.update(name.encode())
+        h.update(str(a.dtype).encode())
+        h.update(str(a.shape).encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def _atomic_write(path: Path, write) -> None:
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            write(f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+class ChunkStore:
+    """The chunk files of one run in `directory`."""
+
+    def __init__(self, directory: str | os.PathLike, description: dict, n: int, chunk_size: int):
+        self.directory = Path(directory)
+        if self.directory.exists() and not self.directory.is_dir():
+            raise ParameterError(f"out={str(directory)!r}: exists and is not a directory")
+        self.directory.mkdir(parents=True, exist_ok=True)
+        text = json.dumps(description, sort_keys=True, default=str)
+        self.fingerprint = hashlib.sha256(text.encode()).hexdigest()
+        manifest = {"format": _FORMAT, "fingerprint": self.fingerprint, "n": n,
+                    "chunk_size": chunk_size, "settings": description}
+        path = self.directory / "run.json"
+        if path.exists():
+            try:
+                old = json.loads(path.read_text())
+            except (OSError, ValueError):
+                old = None
+            if old is None or not isinstance(old, dict):
+                raise ParameterError(
+                    f"out={str(directory)!r}: run.json is unreadable: delete the directory or "
+                    "use another one")
+            if (old.get("fingerprint"), old.get("n"), old.get("chunk_size")) != (
+                    self.fingerprint, n, chunk_size):
+                raise ParameterError(
+                    f"out={str(directory)!r} holds a different run (other settings, n or "
+                    "chunk size): use another directory, or delete it to start again")
+        else:
+            _atomic_write(path, lambda f: f.write(
+                json.dumps(manifest, indent=1, sort_keys=True, default=str).encode()))
+        # Temporary files of writes that never finished.
+        for stale in self.directory.glob(".chunk-*.tmp"):
+            stale.unlink(missing_ok=True)
+        self.recomputed: list[int] = []
+
+    def path(self, index: int) -> Path:
+        return self.directory / f"chunk-{index:06d}.npz"
+
+    def write(self, index: int, arrays: dict[str, np.ndarray]) -> None:
+        meta = {"fingerprint": self.fingerprint, "index": index, "sha256": _digest(arrays)}
+        payload = {f"data/{k}": np.asarray(v) for k, v in arrays.items()}
+        payload["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
+        _atomic_write(self.path(index), lambda f: np.savez(f, **payload))
+
+    def exists(self, index: int) -> bool:
+        return self.path(index).exists()
+
+    def read(self, index: int) -> dict[str, np.ndarray] | None:
+        """The chunk's arrays, or `None` if it is missing or fails its checks (then a warning
+        says why, and the chunk is listed in `recomputed`)."""
+        path = self.path(index)
+        if not path.exists():
+            return None
+        why = None
+        try:
+            with np.load(path, allow_pickle=False) as f:
+                meta = json.loads(bytes(f["meta"]).decode())
+                arrays = {k[len("data/"):]: f[k] for k in f.files if k.startswith("data/")}
+        except Exception as e:  # any unreadable file (truncated zip, bad header) is recomputed
+            why = f"unreadable ({type(e).__name__}: {e})"
+        else:
+            if meta.get("fingerprint") != self.fingerprint or meta.get("index") != index:
+                why = "written by another run"
+            elif meta.get("sha256") != _digest(arrays):
+                why = "checksum mismatch (corrupt)"
+        if why is not None:
+            warnings.warn(f"chunk file {path} is {why}: computing the chunk again",
+                          stacklevel=3)
+            self.recomputed.append(index)
+            return None
+        return arrays

@@ -1,0 +1,635 @@
+"""Monte Carlo ensembles: many runs of one scene with varied parameters and initial states."""
+
+import dataclasses
+import math
+import os
+import time
+from collections.abc import Callable, Mapping, Sequence
+from functools import partial
+from typing import Any
+
+import diffrax as dfx
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._batch_solve import STATUS, STATUS_HELP, batch_solve, tableau
+from ._chunkstore import ChunkStore
+from ._distributions import AbstractDistribution, name_seed, split_name
+from ._scene import Scene
+from ._simulate import Trajectory, _prepare_run, _simulate
+from ._validation import ParameterError
+
+MODES = ("adaptive", "lockstep", "vmap")
+_OK = (STATUS.index("completed"), STATUS.index("event"))
+_QUANTILES = (0.05, 0.25, 0.5, 0.75, 0.95)
+
+
+def final_state(traj: Trajectory) -> dict[str, jax.Array]:
+    """The default observation of one run: every derived output at the final time, the final
+    time `t_final`, and for each terminating event whether it ended the run."""
+    out = {k: v[0] for k, v in traj.final_outputs().items()}
+    out["t_final"] = traj.t_final
+    out.update({f"event.{k}": v for k, v in traj.event.items()})
+    return out
+
+
+@dataclasses.dataclass(frozen=True)
+class Ensemble:
+    """The result of [`jaxdyn.ensemble`][].
+
+    - `n`, `completed`, `failed`: trajectories in all, those that reached `t1` or ended in a
+      terminating event, and those that did not (see `status`).
+    - `status`: per-trajectory codes, names in `status_names` (`"completed"`, `"event"`,
+      `"max_steps_reached"`, `"step_size_underflow"`, `"non_finite"`, `"invalid_input"`).
+    - `values`: the kept observations, name -> array with a leading axis of length `n` (values of
+      failed trajectories are not meaningful: mask with `ok`).
+    - `statistics`: name -> `count`, `mean`, `std`, `min`, `max` (and `quantiles` for kept
+      values) over the successful trajectories, accumulated chunk by chunk.
+    - `steps`: accepted steps per trajectory.
+    - `timing`: `compile_s`, `run_s` (after compilation), `trajectories_per_s`.
+    """
+
+    n: int
+    status: np.ndarray
+    values: dict[str, np.ndarray]
+    statistics: dict[str, dict[str, Any]]
+    steps: np.ndarray
+    reasons: dict[int, str]
+    mode: str
+    chunk_size: int
+    devices: int
+    timing: dict[str, float]
+    resumed_chunks: int = 0
+    recomputed_chunks: tuple[int, ...] = ()
+
+    status_names = STATUS
+
+    @property
+    def ok(self) -> np.ndarray:
+        return np.isin(self.status, _OK)
+
+    @property
+    def completed(self) -> int:
+        return int(np.sum(self.ok))
+
+    @property
+    def failed(self) -> int:
+        return self.n - self.completed
+
+    def status_counts(self) -> dict[str, int]:
+        return {name: int(np.sum(self.status == i)) for i, name in enumerate(STATUS)
+                if np.any(self.status == i)}
+
+    def failures(self, limit: int = 10) -> list[dict[str, Any]]:
+        """The first `limit` failed trajectories: index, status and what it means."""
+        out = []
+        for i in np.flatnonzero(~self.ok)[:limit]:
+            name = STATUS[int(self.status[i])]
+            why = self.reasons.get(int(i), STATUS_HELP.get(name, ""))
+            out.append({"index": int(i), "status": name, "message": why})
+        return out
+
+    def report(self) -> dict[str, Any]:
+        """JSON-ready summary: `n`, `completed`, `failed`, `status`, `statistics`, and how the
+        run went (mode, chunk size, devices, timing)."""
+        return {
+            "n": self.n,
+            "completed": self.completed,
+            "failed": self.failed,
+            "status": self.status_counts(),
+            "failures": self.failures(5),
+            "statistics": _jsonable(self.statistics),
+            "mode": self.mode,
+            "chunk_size": self.chunk_size,
+            "devices": self.devices,
+            "mean_steps": float(np.mean(self.steps)) if self.n else 0.0,
+            "timing": self.timing,
+            "resumed_chunks": self.resumed_chunks,
+            "recomputed_chunks": list(self.recomputed_chunks),
+        }
+
+
+def _jsonable(x):
+    if isinstance(x, dict):
+        return {k: _jsonable(v) for k, v in x.items()}
+    a = np.asarray(x)
+    if a.ndim == 0:
+        v = a.item()
+        return None if isinstance(v, float) and not math.isfinite(v) else v
+    return [_jsonable(v) for v in a]
+
+
+# -- streaming statistics ----------------------------------------------------------------------
+
+class _Moments:
+    """Count, mean, sum of squared deviations, min and max, merged chunk by chunk (Chan et
+    al. 1979), per component, over finite values."""
+
+    def __init__(self):
+        self.count = self.mean = self.m2 = self.min = self.max = None
+
+    def add(self, x: np.ndarray) -> None:
+        x = np.asarray(x, np.float64)
+        finite = np.isfinite(x)
+        n = finite.sum(axis=0).astype(np.float64)
+        safe = np.where(finite, x, 0.0)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean = np.where(n > 0, safe.sum(axis=0) / np.maximum(n, 1), 0.0)
+            m2 = np.where(finite, (safe - mean) ** 2, 0.0).sum(axis=0)
+        lo = np.where(finite, x, np.inf).min(axis=0, initial=np.inf)
+        hi = np.where(finite, x, -np.inf).max(axis=0, initial=-np.inf)
+        if self.count is None:
+            self.count, self.mean, self.m2, self.min, self.max = n, mean, m2, lo, hi
+            return
+        total = self.count + n
+        delta = mean - self.mean
+        with np.errstate(invalid="ignore", divide="ignore"):
+            w = np.where(total > 0, n / np.maximum(total, 1), 0.0)
+        self.mean = self.mean + delta * w
+        self.m2 = self.m2 + m2 + delta**2 * self.count * w
+        self.count = total
+        self.min = np.minimum(self.min, lo)
+        self.max = np.maximum(self.max, hi)
+
+    def result(self) -> dict[str, Any]:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            std = np.sqrt(np.where(self.count > 1, self.m2 / np.maximum(self.count - 1, 1),
+                                   np.nan))
+        nan = np.where(self.count > 0, 0.0, np.nan)
+        return {"count": self.count.astype(np.int64), "mean": self.mean + nan, "std": std,
+                "min": self.min + nan, "max": self.max + nan}
+
+
+# -- what is varied ----------------------------------------------------------------------------
+
+def _targets(scene: Scene, vary: Mapping[str, AbstractDistribution]):
+    """Resolve varied names to (kind, base, index, shape) with kind 'state' or 'parameter'."""
+    state = scene.state_shapes()
+    params = scene.parameters()
+    out = []
+    for name, dist in vary.items():
+        if not isinstance(dist, AbstractDistribution):
+            raise ParameterError(
+                f"vary[{name!r}]={dist!r}: expected a distribution (jaxdyn.Normal, Uniform, "
+                "LogNormal, Fixed)")
+        base, index = split_name(name)
+        if base in state:
+            kind, shape = "state", state[base]
+        elif base in params:
+            kind, shape = "parameter", tuple(np.shape(params[base]))
+        else:
+            raise ParameterError(
+                f"vary: unknown name {base!r}: this scene's parameters are {sorted(params)} and "
+                f"its initial values {sorted(state)}")
+        if index is not None:
+            if len(index) != len(shape) or any(not -s <= i < s for i, s in zip(index, shape)):
+                raise ParameterError(
+                    f"vary: {name!r}: index out of range for {base} of shape {shape}")
+            shape = ()
+        try:
+            np.broadcast_shapes(dist.shape, shape)
+            if np.broadcast_shapes(dist.shape, shape) != shape:
+                raise ValueError
+        except ValueError:
+            raise ParameterError(
+                f"vary[{name!r}]: a distribution of shape {dist.shape} does not fit {base} "
+                f"{'component' if index is not None else 'of shape ' + str(shape)}") from None
+        out.append((name, kind, base, index, shape, dist))
+    return tuple(out)
+
+
+def _draw(targets, key, index, y0, params, dtype):
+    """The varied values of trajectory `index` applied to its `y0` and parameters."""
+    k = jax.random.fold_in(key, index)
+    y0, params = dict(y0), dict(params)
+    for name, kind, base, idx, shape, dist in targets:
+        v = dist.sample(jax.random.fold_in(k, name_seed(name)), shape, dtype)
+        store = y0 if kind == "state" else params
+        old = jnp.asarray(store[base], dtype)
+        store[base] = v if idx is None else old.at[idx].set(v)
+    return y0, params
+
+
+# -- one chunk ---------------------------------------------------------------------------------
+
+def _chunk_core(dyn, sharded, *, static, config, axis_name):
+    """Simulate and observe one chunk (or one device's shard of it)."""
+    scene, base_y0, base_params, key, t0, t1, ts, rtol, atol, dt0, dists = eqx.combine(
+        dyn, static)
+    (targets, solver, mode, max_steps, observe, events) = config
+    targets = tuple(t + (d,) for t, d in zip(targets, dists))
+    indices, batch_y0, batch_params = sharded
+    dtype = t0.dtype
+    m = indices.shape[0]
+
+    def one(index, by0, bp):
+        y0 = {**base_y0, **by0}
+        params = {**base_params, **bp}
+        return _draw(targets, key, index, y0, params, dtype)
+
+    y0, params = jax.vmap(one)(indices, batch_y0, batch_params)
+
+    def scene_of(p):
+        return scene.replace(p) if p else scene
+
+    def violations(p, y):
+        return scene_of(p).violations(y)[0]
+
+    flags = jax.vmap(violations)(params, y0)
+    names = tuple(scene.events()) if events else ()
+    if mode == "vmap":
+        controller = dfx.PIDController(rtol=rtol, atol=atol)
+
+        def run(p, y):
+            return _simulate(scene_of(p), y, t0, t1, ts, solver=solver, controller=controller,
+                             dt0=dt0, max_steps=max_steps,
+                             adjoint=dfx.RecursiveCheckpointAdjoint(), events=events,
+                             meter=dfx.NoProgressMeter(), dense=False, checks=False)
+
+        trajs = jax.vmap(run)(params, y0)
+        R = dfx.RESULTS
+        res = trajs.result
+        finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x.reshape(m, -1)), axis=1)
+                                    for x in jax.tree.leaves(trajs.y_final)]), axis=0)
+        status = jnp.select(
+            [res == R.successful, res == R.event_occurred, res == R.max_steps_reached,
+             res == R.dt_min_reached],
+            [0, 1, 2, 3], 4).astype(jnp.int32)
+        status = jnp.where((status <= 1) & ~finite, STATUS.index("non_finite"), status)
+        invalid = jnp.any(flags, axis=1)
+        status = jnp.where(invalid, STATUS.index("invalid_input"), status)
+        reason = jnp.argmax(flags, axis=1).astype(jnp.int32)
+        steps = trajs.stats["num_accepted_steps"]
+    else:
+        def field(p, t, y):
+            return scene_of(p).vector_field(t, y)
+
+        conditions = None
+        if names:
+            def conditions(p, t, y):
+                fns = scene_of(p).events()
+                return jnp.stack([fns[k](t, y) for k in names])
+
+        r = batch_solve(field, conditions, names, flags, params, y0, t0, t1, ts,
+                        solver=solver, rtol=rtol, atol=atol, max_steps=max_steps,
+                        lockstep=mode == "lockstep", dt0=dt0, axis_name=axis_name)
+        status, reason, steps = r.status, r.reason, r.steps
+
+        def build(p, y_start, t_final, y_final, ys, event, status, steps, rejected):
+            if ts is None:
+                ts_i = jnp.stack([t0, t_final])
+                ys_i = jax.tree.map(lambda a, b: jnp.stack([a, b]), y_start, y_final)
+            else:
+                ts_i = jnp.where(ts <= t_final, ts, jnp.inf)
+                ys_i = ys
+            R = dfx.RESULTS
+            result = R.where(status == 0, R.successful, R.where(
+                status == 1, R.event_occurred, R.where(
+                    status == 2, R.max_steps_reached, R.dt_min_reached)))
+            return Trajectory(scene=scene_of(p), ts=ts_i, ys=ys_i, t_final=t_final,
+                              y_final=y_final, event=event, result=result,
+                              stats={"num_accepted_steps": steps, "num_rejected_steps": rejected})
+
+        trajs = jax.vmap(build)(params, y0, r.t_final, r.y_final, r.ys, r.event, r.status,
+                                r.steps, r.rejected)
+    observed = jax.vmap(observe)(trajs)
+    if not isinstance(observed, Mapping):
+        raise ParameterError(f"observe returned {type(observed).__name__}: expected a dict of "
+                             "arrays")
+    return {"values": dict(observed), "status": status, "reason": reason, "steps": steps}
+
+
+_COMPILED: dict = {}
+
+
+def _compiled_chunk(dyn, static, sharded, config, devices):
+    """The compiled chunk function for these shapes and this configuration (cached)."""
+    leaves, treedef = jax.tree_util.tree_flatten(static)
+    key = (treedef, tuple(leaves), jax.tree.structure(dyn),
+           tuple((x.shape, x.dtype) for x in jax.tree.leaves(dyn)),
+           jax.tree.structure(sharded),
+           tuple((x.shape, x.dtype) for x in jax.tree.leaves(sharded)),
+           config, tuple(devices))
+    if key in _COMPILED:
+        return _COMPILED[key], 0.0
+    if len(devices) > 1:
+        mesh = jax.sharding.Mesh(np.asarray(devices), ("batch",))
+        spec = jax.sharding.PartitionSpec("batch")
+        body = jax.shard_map(
+            partial(_chunk_core, static=static, config=config, axis_name="batch"),
+            mesh=mesh, in_specs=(jax.sharding.PartitionSpec(), spec), out_specs=spec,
+            check_vma=False)
+        sharding = jax.sharding.NamedSharding(mesh, spec)
+    else:
+        body = partial(_chunk_core, static=static, config=config, axis_name=None)
+        sharding = None
+    start = time.perf_counter()
+    compiled = jax.jit(body).lower(dyn, sharded).compile()
+    seconds = time.perf_counter() - start
+    _COMPILED[key] = (compiled, sharding, static)
+    return _COMPILED[key], seconds
+
+
+# -- the ensemble ------------------------------------------------------------------------------
+
+def _batched(name, tree, shapes, n):
+    """Split `tree` (a dict) into unbatched values and values with a leading batch axis."""
+    single, batch = {}, {}
+    for k, v in tree.items():
+        v = np.asarray(v) if not isinstance(v, jax.Array) else v
+        want = shapes[k]
+        if tuple(v.shape) == tuple(want):
+            single[k] = v
+        elif tuple(v.shape[1:]) == tuple(want):
+            if n is not None and v.shape[0] != n:
+                raise ParameterError(
+                    f"{name}[{k!r}] has {v.shape[0]} rows: expected n={n} (or shape {want} "
+                    "for a value shared by all trajectories)")
+            n = v.shape[0]
+            batch[k] = v
+        else:
+            raise ParameterError(
+                f"{name}[{k!r}] has shape {tuple(v.shape)}: expected {want} or (n,) + {want}")
+    return single, batch, n
+
+
+def ensemble(
+    scene: Scene,
+    y0: Mapping[str, Any],
+    t1: float,
+    *,
+    n: int | None = None,
+    key: jax.Array | int = 0,
+    vary: Mapping[str, AbstractDistribution] | None = None,
+    parameters: Mapping[str, Any] | None = None,
+    t0: float = 0.0,
+    ts: Any = None,
+    observe: Callable[[Trajectory], Mapping[str, jax.Array]] | None = None,
+    keep: bool | Sequence[str] = True,
+    solver: dfx.AbstractSolver | None = None,
+    rtol: float = 1e-8,
+    atol: float = 1e-10,
+    dt0: float | None = None,
+    max_steps: int = 100_000,
+    mode: str = "adaptive",
+    chunk_size: int | None = None,
+    devices: Sequence[jax.Device] | None = None,
+    out: str | os.PathLike | None = None,
+    progress: bool = False,
+    events: bool = True,
+) -> Ensemble:
+    """Run a scene over a batch of initial states and parameters.
+
+    Trajectory `i` starts from `y0` (row `i` of it where it has a leading batch axis) with the
+    scene's parameters (row `i` of `parameters`), then draws the values in `vary` from
+    `jax.random.fold_in(key, i)`. It is simulated from `t0` to `t1` (or its terminating event),
+    and `observe` reduces it to a few numbers; only those are kept, so memory is bounded by
+    `chunk_size` trajectories whatever `n` is.
+
+    **Arguments:**
+
+    - `scene`, `y0`, `t1`, `t0`, `ts`, `solver`, `rtol`, `atol`, `dt0`, `max_steps`, `events`:
+      as for [`jaxdyn.simulate`][], per trajectory.
+    - `n`: number of trajectories (default: the rows of the batched inputs).
+    - `key`: a `jax.random.key` or an integer seed.
+    - `vary`: name -> distribution ([`jaxdyn.Normal`][], [`jaxdyn.Uniform`][],
+      [`jaxdyn.LogNormal`][], [`jaxdyn.Fixed`][]); names are parameters (`"inertia"`,
+      `"rotor.momentum"`) or initial values (`"omega"`), optionally one component
+      (`"omega[1]"`).
+    - `parameters`: parameter name -> array with a leading axis of length `n`.
+    - `observe`: `Trajectory -> dict of arrays`, applied to each run (default
+      [`jaxdyn.final_state`][]: the outputs at the final time, `t_final` and event flags).
+    - `keep`: which observations to return per trajectory (`True`: all, `False`: none, only
+      their statistics, or a list of names).
+    - `mode`: `"adaptive"` (each trajectory takes its own steps; the default), `"lockstep"`
+      (one step size for the whole batch), or `"vmap"` (`jax.vmap` over `simulate`: any diffrax
+      solver, and hybrid bodies such as [`jaxdyn.RoughFloorRod`][], at a fraction of the speed).
+      The first two need an explicit Runge-Kutta solver with an error estimate.
+    - `chunk_size`: trajectories per compiled call (default 8192, or `n` if smaller; rounded up
+      to a multiple of the number of devices).
+    - `devices`: devices to shard each chunk across (default: all local devices).
+    - `out`: a directory for chunk files: each finished chunk is written atomically, and a run
+      started again with the same settings resumes where it stopped. Needed when several
+      processes share a run (`jax.distributed`): each computes its share of the chunks.
+    - `progress`: show a progress bar (tqdm).
+
+    **Returns:**
+
+    An [`jaxdyn.Ensemble`][]. A trajectory that fails (an invalid sample, a step budget that runs
+    out) is marked in `status` and leaves the others running.
+    """
+    if not isinstance(scene, Scene):
+        raise ParameterError(f"scene={scene!r}: expected a jaxdyn.Scene")
+    if mode not in MODES:
+        raise ParameterError(f"mode={mode!r}: allowed are {list(MODES)}")
+    vary = dict(vary or {})
+    targets = _targets(scene, vary)
+    shapes = scene.state_shapes()
+    if not isinstance(y0, Mapping) or set(y0) != set(shapes):
+        raise ParameterError(
+            f"y0 has variables {sorted(y0) if isinstance(y0, Mapping) else type(y0).__name__}: "
+            f"this scene integrates {sorted(shapes)}")
+    y_single, y_batch, n_rows = _batched("y0", y0, shapes, None)
+    param_shapes = {k: tuple(np.shape(v)) for k, v in scene.parameters().items()}
+    parameters = dict(parameters or {})
+    unknown = sorted(set(parameters) - set(param_shapes))
+    if unknown:
+        raise ParameterError(f"parameters: unknown {unknown}: this scene has "
+                             f"{sorted(param_shapes)}")
+    p_single, p_batch, n_rows = _batched("parameters", parameters, param_shapes, n_rows)
+    if n is None:
+        if n_rows is None:
+            raise ParameterError("n: give the number of trajectories (no input has a batch axis)")
+        n = n_rows
+    if not isinstance(n, int | np.integer) or n <= 0:
+        raise ParameterError(f"n={n!r}: must be a positive integer")
+    if n_rows is not None and n_rows != n:
+        raise ParameterError(f"n={n}: the batched inputs have {n_rows} rows")
+    n = int(n)
+    if isinstance(key, int | np.integer):
+        key = jax.random.key(int(key))
+    # Check the run's settings on one unbatched trajectory, as simulate would.
+    example = {k: (v[0] if k in y_batch else v) for k, v in y0.items()}
+    example = {k: jnp.asarray(v) for k, v in example.items()}
+    ex_y0, t0, t1, ts, solver, _, dt0 = _prepare_run(
+        scene, example, t0, t1, ts, solver, rtol, atol, None, dt0, max_steps)
+    dtype = t0.dtype
+    if mode != "vmap":
+        if events and scene.body.max_switches > 0:
+            raise ParameterError(
+                f"mode={mode!r}: a {scene.body.kind} switches modes during a run; use "
+                "mode='vmap'")
+        tableau(solver)
+    if devices is None:
+        devices = jax.local_devices()
+    devices = list(devices)
+    if not devices:
+        raise ParameterError("devices: empty list")
+    if chunk_size is None:
+        chunk_size = min(8192, n)
+    if not isinstance(chunk_size, int | np.integer) or chunk_size <= 0:
+        raise ParameterError(f"chunk_size={chunk_size!r}: must be a positive integer")
+    chunk_size = int(math.ceil(int(chunk_size) / len(devices)) * len(devices))
+    if isinstance(keep, bool):
+        keep_names = None if keep else ()
+    else:
+        keep_names = tuple(keep)
+    observe = final_state if observe is None else observe
+
+    # Everything that is the same for all chunks: arrays travel as arguments (so new values do
+    # not recompile), the rest is static.
+    base_y0 = {k: jnp.asarray(v, dtype) for k, v in y_single.items()}
+    base_params = {k: jnp.asarray(v) for k, v in p_single.items()}
+    rtol_a, atol_a = jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype)
+    dists = tuple(t[-1] for t in targets)  # their values are arguments too
+    tree = (scene, base_y0, base_params, key, t0, t1, ts, rtol_a, atol_a, dt0, dists)
+    dyn, static = eqx.partition(tree, eqx.is_array)
+    config = (tuple(t[:-1] for t in targets), solver, mode, int(max_steps), observe,
+              bool(events))
+
+    n_chunks = math.ceil(n / chunk_size)
+    process, processes = jax.process_index(), jax.process_count()
+    store = None
+    if out is not None:
+        description = {
+            "scene": repr(jax.tree.map(lambda x: np.asarray(x).tolist()
+                                       if eqx.is_array(x) else x, scene)),
+            "y0": {k: np.asarray(v).tolist() for k, v in y_single.items()},
+            "batched": {k: _digest_array(v) for k, v in {**y_batch, **p_batch}.items()},
+            "parameters": {k: np.asarray(v).tolist() for k, v in p_single.items()},
+            "vary": {name: repr(d) for name, d in vary.items()},
+            "key": np.asarray(jax.random.key_data(key)).tolist(),
+            "t0": float(t0), "t1": float(t1),
+            "ts": None if ts is None else np.asarray(ts).tolist(),
+            "solver": repr(solver), "rtol": float(rtol), "atol": float(atol),
+            "dt0": None if dt0 is None else float(dt0), "max_steps": int(max_steps),
+            "mode": mode, "events": bool(events), "dtype": str(dtype),
+            "observe": f"{getattr(observe, '__module__', '')}."
+                       f"{getattr(observe, '__qualname__', repr(observe))}",
+        }
+        store = ChunkStore(out, description, n, chunk_size)
+    elif processes > 1:
+        raise ParameterError(
+            f"out: a run shared by {processes} processes (jax.distributed) needs an output "
+            "directory on a shared file system, where each process writes its chunks")
+
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=n, unit="traj", desc="ensemble")
+    stats: dict[str, _Moments] = {}
+    kept: dict[str, list] = {}
+    status_parts, steps_parts = [], []
+    reasons: dict[int, str] = {}
+    compile_s, run_times, resumed = 0.0, [], 0
+    msgs = scene.violations(ex_y0)[1]
+
+    def compute(c):
+        nonlocal compile_s
+        lo, hi = c * chunk_size, min((c + 1) * chunk_size, n)
+        idx = np.arange(lo, lo + chunk_size)
+        rows = np.minimum(idx, hi - 1)  # the last chunk is padded with copies of its last row
+        sharded = (jnp.asarray(idx, jnp.uint32),
+                   {k: jnp.asarray(np.asarray(v)[rows], dtype) for k, v in y_batch.items()},
+                   {k: jnp.asarray(np.asarray(v)[rows]) for k, v in p_batch.items()})
+        (fn, sharding, _), seconds = _compiled_chunk(dyn, static, sharded, config, devices)
+        compile_s += seconds
+        if sharding is not None:
+            sharded = jax.device_put(sharded, sharding)
+        start = time.perf_counter()
+        result = jax.block_until_ready(fn(dyn, sharded))
+        run_times.append(time.perf_counter() - start)
+        m = hi - lo
+        arrays = {f"values/{k}": np.asarray(v)[:m] for k, v in result["values"].items()}
+        arrays.update({k: np.asarray(result[k])[:m] for k in ("status", "reason", "steps")})
+        return arrays
+
+    mine = [c for c in range(n_chunks) if c % processes == process]
+    results: dict[int, dict] = {}
+    for c in range(n_chunks):
+        arrays = store.read(c) if store is not None else None
+        if arrays is None and c in mine:
+            arrays = compute(c)
+            if store is not None:
+                store.write(c, arrays)
+        elif arrays is not None:
+            resumed += 1
+        if arrays is None:  # another process's chunk: merged below, once it is written
+            continue
+        results[c] = arrays
+        if bar is not None:
+            bar.update(min((c + 1) * chunk_size, n) - c * chunk_size)
+    if bar is not None:
+        bar.close()
+    if len(results) < n_chunks:
+        results.update(_wait_for_chunks(store, [c for c in range(n_chunks) if c not in results]))
+
+    for c in range(n_chunks):  # merged in chunk order, however they were computed
+        arrays = results[c]
+        status = arrays["status"]
+        ok = np.isin(status, _OK)
+        status_parts.append(status)
+        steps_parts.append(arrays["steps"])
+        lo = c * chunk_size
+        for i in np.flatnonzero(status == STATUS.index("invalid_input")):
+            reasons[lo + int(i)] = msgs[int(arrays["reason"][i])]
+        for k, v in arrays.items():
+            if not k.startswith("values/"):
+                continue
+            name = k[len("values/"):]
+            stats.setdefault(name, _Moments()).add(v[ok].astype(np.float64))
+            if keep_names is None or name in keep_names:
+                kept.setdefault(name, []).append(v)
+    values = {k: np.concatenate(v) for k, v in kept.items()}
+    status = np.concatenate(status_parts).astype(np.int8)
+    ok = np.isin(status, _OK)
+    statistics = {}
+    for name, mom in stats.items():
+        s = mom.result()
+        if name in values:
+            v = values[name][ok].astype(np.float64)
+            with np.errstate(invalid="ignore"):
+                q = np.nanquantile(np.where(np.isfinite(v), v, np.nan), _QUANTILES, axis=0) \
+                    if v.shape[0] else np.full((len(_QUANTILES),) + v.shape[1:], np.nan)
+            s["quantiles"] = {f"{int(p * 100)}%": q[i] for i, p in enumerate(_QUANTILES)}
+        statistics[name] = s
+    run_s = float(sum(run_times))
+    computed = len(run_times) * chunk_size
+    timing = {"compile_s": round(compile_s, 4), "run_s": round(run_s, 4),
+              "trajectories_per_s": (min(computed, n) / run_s) if run_s > 0 else None}
+    return Ensemble(
+        n=n, status=status, values=values, statistics=statistics,
+        steps=np.concatenate(steps_parts), reasons=reasons, mode=mode, chunk_size=chunk_size,
+        devices=len(devices), timing=timing, resumed_chunks=resumed,
+        recomputed_chunks=tuple(store.recomputed) if store is not None else (),
+    )
+
+
+def _digest_array(v) -> str:
+    import hashlib
+
+    a = np.ascontiguousarray(np.asarray(v))
+    return hashlib.sha256(a.tobytes() + str(a.shape).encode() + str(a.dtype).encode()).hexdigest()
+
+
+def _wait_for_chunks(store, missing, timeout: float = 24 * 3600.0, poll: float = 0.5):
+    """Chunks written by other processes of a shared run, as they appear."""
+    got = {}
+    deadline = time.monotonic() + timeout
+    while missing:
+        for c in list(missing):
+            arrays = store.read(c) if store.exists(c) else None
+            if arrays is not None:
+                got[c] = arrays
+                missing.remove(c)
+        if missing:
+            if time.monotonic() > deadline:
+                raise RuntimeError(f"chunks {missing[:5]} were not written by the other "
+                                   "processes in time")
+            time.sleep(poll)
+    return got
+
+
