@@ -439,6 +439,10 @@ def ensemble(
         raise ParameterError(f"parameters: unknown {unknown}: this scene has "
                              f"{sorted(param_shapes)}")
     p_single, p_batch, n_rows = _batched("parameters", parameters, param_shapes, n_rows)
+    nominal = scene.parameters()
+    for _, kind, base, _, _, _ in targets:  # varied parameters start from the scene's values
+        if kind == "parameter" and base not in p_single and base not in p_batch:
+            p_single[base] = nominal[base]
     if n is None:
         if n_rows is None:
             raise ParameterError("n: give the number of trajectories (no input has a batch axis)")

@@ -1,0 +1,409 @@
+"""Monte Carlo ensembles: jaxdyn against plain `jax.vmap`, a SciPy loop and a lean fused kernel.
+
+Two problems, each over the same `n` initial states (drawn once with NumPy, passed to every
+method), rtol=1e-8, atol=1e-10:
+
+- torque-free body, rates only: inertia (1, 2, 3), omega0 ~ Normal((0.1, 1, 0.1), 0.05) per
+  component, t in [0, 20]; the error is measured against the closed form
+  (`jd.torque_free_omega`, Jacobi elliptic functions);
+- falling rod: length 1, theta0 ~ Uniform(0.01, 0.2), theta_dot0 ~ Normal(0, 0.01), until it
+  lies flat (a terminating event); the error of the fall time is measured against the
+  quadrature `FallingRod.fall_time`.
+
+Methods, all in this one run:
+
+- jaxdyn: `jd.ensemble` (default mode: per-trajectory adaptive Tsit5 over a batch; chunks of
+  `--chunk` trajectories), and its lock-step mode;
+- plain vmap: `jax.jit(jax.vmap(diffrax.diffeqsolve))` with Tsit5 and a PID controller (and a
+  `diffrax.Event` for the rod), as a user would write it;
+- SciPy: a loop over `scipy.integrate.solve_ivp` (RK45 and DOP853; the faster is compared) on
+  the first `--scipy-n` trajectories, rate extrapolated;
+- lean kernel, the practical limit: Tsit5's tableau with a fixed step in a `lax.scan` (rod: a
+  `while_loop` until every rod is down, the event located on the cubic Hermite interpolant by
+  Newton), over a structure-of-arrays state (one row per component), with the smallest number
+  of steps whose largest error over the check subset is no larger than jaxdyn's.
+
+Figures: trajectories per second (median of repeats after compilation; compile time reported
+apart), largest and median error against the exact reference on a check subset, ratios. Peak
+memory: `jd.ensemble` with statistics only (`keep=False`) in a fresh process for n = 1, 4, 16
+chunks; resident-set peak (ru_maxrss) of each.
+
+Run: `python benchmarks/montecarlo.py [--quick] [--n N]`. Prints one JSON object.
+"""
+
+import argparse
+import json
+import platform
+import resource
+import statistics
+import subprocess
+import sys
+import time
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import diffrax as dfx  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+import optimistix as optx  # noqa: E402
+from diffrax._solver.tsit5 import _tsit5_tableau as TSIT5  # noqa: E402
+from scipy.integrate import solve_ivp  # noqa: E402
+
+import jaxdyn as jd  # noqa: E402
+
+RTOL, ATOL = 1e-8, 1e-10
+INERTIA = (1.0, 2.0, 3.0)
+T_FREE = 20.0
+T_ROD = 5.0
+G, LENGTH = 9.81, 1.0
+CHECK = 2000  # trajectories whose error is measured
+
+
+def timed(fn, repeats):
+    """(median seconds after a first call, first-call seconds)."""
+    start = time.perf_counter()
+    jax.block_until_ready(fn())
+    first = time.perf_counter() - start
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(fn())
+        times.append(time.perf_counter() - start)
+    return statistics.median(times), first
+
+
+# -- the lean kernel ---------------------------------------------------------------------------
+
+A = [tuple(float(v) for v in row) for row in TSIT5.a_lower]
+B = tuple(float(v) for v in TSIT5.b_sol)
+C = tuple(float(v) for v in TSIT5.c)
+
+
+def rk_step(f, y, h):
+    """One Tsit5 step (no error estimate) on a tuple of rows; returns (y1, f(y0))."""
+    ks = [f(y)]
+    for row in A:
+        yi = tuple(y[j] + h * sum(a * k[j] for a, k in zip(row, ks) if a != 0.0)
+                   for j in range(len(y)))
+        ks.append(f(yi))
+    y1 = tuple(y[j] + h * sum(b * k[j] for b, k in zip(B, ks) if b != 0.0)
+               for j in range(len(y)))
+    return y1, ks[0]
+
+
+def euler_rows(w):
+    i1, i2, i3 = INERTIA
+    w1, w2, w3 = w
+    return ((i2 - i3) / i1 * w2 * w3, (i3 - i1) / i2 * w3 * w1, (i1 - i2) / i3 * w1 * w2)
+
+
+def lean_free(w0, steps):
+    h = T_FREE / steps
+    y = tuple(w0[:, j] for j in range(3))
+    y, _ = jax.lax.scan(lambda y, _: (rk_step(euler_rows, y, h)[0], None), y, None,
+                        length=steps)
+    return jnp.stack(y, axis=-1)
+
+
+def rod_rows(y):
+    theta, rate = y
+    s, c = jnp.sin(theta), jnp.cos(theta)
+    acc = (6 * G / LENGTH * s - 3 * s * c * rate**2) / (1 + 3 * s**2)
+    return (rate, acc)
+
+
+def lean_rod(y0, h):
+    """Fixed steps until every rod is flat; fall time from the cubic Hermite interpolant."""
+    theta, rate = y0[:, 0], y0[:, 1]
+    n = theta.shape[0]
+    half = jnp.pi / 2
+
+    def cond(c):
+        return jnp.any(~c[3])
+
+    def body(c):
+        t, y, f, done, out = c
+        y1, _ = rk_step(rod_rows, y, h)
+        f1 = rod_rows(y1)
+        hit = ~done & (jnp.abs(y1[0]) >= half)
+        # Hermite cubic of theta over the step, root of |theta| = pi/2 by Newton from the secant.
+        th0, th1, d0, d1 = y[0], y1[0], f[0] * h, f1[0] * h
+        sgn = jnp.sign(th1)
+        s = jnp.clip((half - sgn * th0) / (sgn * (th1 - th0)), 0.0, 1.0)
+        for _ in range(4):
+            h00, h10 = 2 * s**3 - 3 * s**2 + 1, s**3 - 2 * s**2 + s
+            h01, h11 = -2 * s**3 + 3 * s**2, s**3 - s**2
+            p = h00 * th0 + h10 * d0 + h01 * th1 + h11 * d1
+            dp = ((6 * s**2 - 6 * s) * th0 + (3 * s**2 - 4 * s + 1) * d0
+                  + (-6 * s**2 + 6 * s) * th1 + (3 * s**2 - 2 * s) * d1)
+            s = jnp.clip(s - (sgn * p - half) / (sgn * dp), 0.0, 1.0)
+        out = jnp.where(hit, t + s * h, out)
+        return t + h, y1, f1, done | hit, out
+
+    y = (theta, rate)
+    c = (jnp.zeros(()), y, rod_rows(y), jnp.zeros(n, bool), jnp.full(n, jnp.inf))
+    return jax.lax.while_loop(cond, body, c)[4]
+
+
+# -- plain vmap over diffrax ---------------------------------------------------------------------
+
+def plain_free(w0):
+    def one(w):
+        sol = dfx.diffeqsolve(
+            dfx.ODETerm(lambda t, w, i: jnp.cross(i * w, w) / i), dfx.Tsit5(), 0.0, T_FREE,
+            None, w, args=jnp.asarray(INERTIA),
+            stepsize_controller=dfx.PIDController(rtol=RTOL, atol=ATOL),
+            saveat=dfx.SaveAt(t1=True), max_steps=100_000)
+        return sol.ys[0]
+    return jax.vmap(one)(w0)
+
+
+def plain_rod(y0):
+    def vf(t, y, args):
+        return jnp.stack(rod_rows((y[0], y[1])))
+
+    event = dfx.Event(lambda t, y, args, **kw: jnp.pi / 2 - jnp.abs(y[0]),
+                      root_finder=optx.Newton(rtol=1e-12, atol=1e-12))
+
+    def one(y):
+        sol = dfx.diffeqsolve(dfx.ODETerm(vf), dfx.Tsit5(), 0.0, T_ROD, None, y,
+                              stepsize_controller=dfx.PIDController(rtol=RTOL, atol=ATOL),
+                              saveat=dfx.SaveAt(t1=True), event=event, max_steps=100_000)
+        return sol.ts[0]
+    return jax.vmap(one)(y0)
+
+
+# -- SciPy --------------------------------------------------------------------------------------
+
+def scipy_free(w0, method):
+    i1, i2, i3 = INERTIA
+
+    def f(t, w):
+        return [(i2 - i3) / i1 * w[1] * w[2], (i3 - i1) / i2 * w[2] * w[0],
+                (i1 - i2) / i3 * w[0] * w[1]]
+    return np.array([solve_ivp(f, (0.0, T_FREE), w, method=method, rtol=RTOL,
+                               atol=ATOL).y[:, -1] for w in w0])
+
+
+def scipy_rod(y0, method):
+    def f(t, y):
+        s, c = np.sin(y[0]), np.cos(y[0])
+        return [y[1], (6 * G / LENGTH * s - 3 * s * c * y[1] ** 2) / (1 + 3 * s**2)]
+
+    def flat(t, y):
+        return np.pi / 2 - abs(y[0])
+    flat.terminal = True
+    return np.array([solve_ivp(f, (0.0, T_ROD), y, method=method, rtol=RTOL, atol=ATOL,
+                               events=flat).t_events[0][0] for y in y0])
+
+
+def scipy_rate(fn, inputs, ref, err):
+    best = None
+    for method in ("RK45", "DOP853"):
+        start = time.perf_counter()
+        out = fn(inputs, method)
+        seconds = time.perf_counter() - start
+        e = err(out, ref)
+        row = {"method": method, "n": len(inputs), "seconds": seconds,
+               "trajectories_per_s": len(inputs) / seconds, "max_error": e[0],
+               "median_error": e[1]}
+        if best is None or row["trajectories_per_s"] > best["trajectories_per_s"]:
+            best = row
+    return best
+
+
+def errors(out, ref):
+    e = np.abs(np.asarray(out) - np.asarray(ref)).reshape(len(ref), -1).max(axis=1)
+    return float(e.max()), float(np.median(e))
+
+
+def lean_search(run, ref, target, first):
+    """Smallest step count (rod: largest step) in a ladder whose max error is <= target."""
+    steps = first
+    while True:
+        e = errors(run(steps), ref)
+        if e[0] <= target or steps > 100 * first:
+            return steps, e
+        steps = int(np.ceil(steps * 1.1))
+
+
+# -- the two problems ----------------------------------------------------------------------------
+
+def free_body(n, chunk, repeats, scipy_n, rng):
+    w0 = np.array([0.1, 1.0, 0.1]) + 0.05 * rng.standard_normal((n, 3))
+    scene = jd.Scene(jd.RigidBody(inertia=list(INERTIA)))
+    ref = np.asarray(jax.jit(jax.vmap(lambda w: jd.torque_free_omega(
+        jnp.asarray(INERTIA), w, T_FREE)))(jnp.asarray(w0[:CHECK])))
+    out = {"problem": "torque-free body, rates only, t in [0, 20]", "n": n}
+
+    def ens(mode):
+        return jd.ensemble(scene, {"omega": w0}, T_FREE, rtol=RTOL, atol=ATOL, mode=mode,
+                           chunk_size=chunk, keep=("omega",))
+
+    for mode in ("adaptive", "lockstep"):
+        res = ens(mode)
+        seconds, _ = timed(lambda: ens(mode).status, repeats)
+        out[f"jaxdyn_{mode}"] = {
+            "trajectories_per_s": n / seconds, "seconds": seconds,
+            "compile_s": res.timing["compile_s"], "failed": res.failed,
+            "mean_steps": float(res.steps.mean()),
+            "max_error": errors(res.values["omega"][:CHECK], ref)[0],
+            "median_error": errors(res.values["omega"][:CHECK], ref)[1]}
+    target = out["jaxdyn_adaptive"]["max_error"]
+
+    plain = jax.jit(plain_free)
+    w0j = jnp.asarray(w0)
+    seconds, first = timed(lambda: plain(w0j), max(1, repeats // 2))
+    e = errors(plain(w0j)[:CHECK], ref)
+    out["plain_vmap"] = {"trajectories_per_s": n / seconds, "seconds": seconds,
+                         "compile_s": first - seconds, "max_error": e[0], "median_error": e[1]}
+
+    out["scipy_loop"] = scipy_rate(scipy_free, w0[:scipy_n], ref[:scipy_n], errors)
+
+    runs = {}
+
+    def lean(steps):
+        if steps not in runs:
+            runs[steps] = jax.jit(lambda w: lean_free(w, steps))
+        return np.asarray(runs[steps](jnp.asarray(w0[:CHECK])))
+    steps, e = lean_search(lean, ref, target, 60)
+    fn = jax.jit(lambda w: jax.lax.map(lambda c: lean_free(c, steps),
+                                       w.reshape(-1, chunk, 3)).reshape(-1, 3))
+    whole = jax.jit(lambda w: lean_free(w, steps))
+    m = (n // chunk) * chunk
+    s_chunk, first = timed(lambda: fn(w0j[:m]), repeats)
+    s_whole, _ = timed(lambda: whole(w0j), repeats)
+    rate = max(m / s_chunk, n / s_whole)
+    out["lean_kernel"] = {"steps": steps, "trajectories_per_s": rate,
+                          "chunked_per_s": m / s_chunk, "whole_batch_per_s": n / s_whole,
+                          "compile_s": first - s_chunk, "max_error": e[0], "median_error": e[1]}
+    return out
+
+
+def rod(n, chunk, repeats, scipy_n, rng):
+    theta0 = rng.uniform(0.01, 0.2, n)
+    rate0 = 0.01 * rng.standard_normal(n)
+    y0 = np.stack([theta0, rate0], axis=1)
+    scene = jd.Scene(jd.FallingRod(length=LENGTH, g=G))
+    body = scene.body
+    ref = np.array([float(body.fall_time(a, b)) for a, b in y0[:CHECK]])
+    out = {"problem": "falling rod to impact (terminating event)", "n": n}
+
+    def ens(mode):
+        return jd.ensemble(scene, {"theta": theta0, "theta_dot": rate0}, T_ROD, rtol=RTOL,
+                           atol=ATOL, mode=mode, chunk_size=chunk, keep=("t_final",))
+
+    for mode in ("adaptive", "lockstep"):
+        res = ens(mode)
+        seconds, _ = timed(lambda: ens(mode).status, repeats)
+        e = errors(res.values["t_final"][:CHECK], ref)
+        out[f"jaxdyn_{mode}"] = {
+            "trajectories_per_s": n / seconds, "seconds": seconds,
+            "compile_s": res.timing["compile_s"], "failed": res.failed,
+            "mean_steps": float(res.steps.mean()), "max_error": e[0], "median_error": e[1]}
+    target = out["jaxdyn_adaptive"]["max_error"]
+
+    plain = jax.jit(plain_rod)
+    y0j = jnp.asarray(y0)
+    seconds, first = timed(lambda: plain(y0j), max(1, repeats // 2))
+    e = errors(plain(y0j)[:CHECK], ref)
+    out["plain_vmap"] = {"trajectories_per_s": n / seconds, "seconds": seconds,
+                         "compile_s": first - seconds, "max_error": e[0], "median_error": e[1]}
+
+    out["scipy_loop"] = scipy_rate(scipy_rod, y0[:scipy_n], ref[:scipy_n], errors)
+
+    runs = {}
+
+    def lean(steps):  # steps per second of simulated time
+        if steps not in runs:
+            runs[steps] = jax.jit(lambda y: lean_rod(y, 1.0 / steps))
+        return np.asarray(runs[steps](jnp.asarray(y0[:CHECK])))
+    steps, e = lean_search(lean, ref, target, 20)
+    fn = jax.jit(lambda y: jax.lax.map(lambda c: lean_rod(c, 1.0 / steps),
+                                       y.reshape(-1, chunk, 2)).reshape(-1))
+    whole = jax.jit(lambda y: lean_rod(y, 1.0 / steps))
+    m = (n // chunk) * chunk
+    s_chunk, first = timed(lambda: fn(y0j[:m]), repeats)
+    s_whole, _ = timed(lambda: whole(y0j), repeats)
+    out["lean_kernel"] = {"steps_per_unit_time": steps,
+                          "trajectories_per_s": max(m / s_chunk, n / s_whole),
+                          "chunked_per_s": m / s_chunk, "whole_batch_per_s": n / s_whole,
+                          "compile_s": first - s_chunk, "max_error": e[0], "median_error": e[1]}
+    return out
+
+
+def ratios(block):
+    j = block["jaxdyn_adaptive"]["trajectories_per_s"]
+    return {
+        "vs_plain_vmap": j / block["plain_vmap"]["trajectories_per_s"],
+        "vs_scipy_loop": j / block["scipy_loop"]["trajectories_per_s"],
+        "lean_over_jaxdyn": block["lean_kernel"]["trajectories_per_s"] / j,
+        "adaptive_over_lockstep": j / block["jaxdyn_lockstep"]["trajectories_per_s"],
+        "targets_met": {
+            "10x_plain_vmap": j >= 10 * block["plain_vmap"]["trajectories_per_s"],
+            "1000x_scipy": j >= 1000 * block["scipy_loop"]["trajectories_per_s"],
+            "within_3x_of_lean": block["lean_kernel"]["trajectories_per_s"] <= 3 * j,
+        },
+    }
+
+
+def memory_probe(n, chunk):
+    scene = jd.Scene(jd.RigidBody(inertia=list(INERTIA)))
+    res = jd.ensemble(scene, scene.state(omega=[0.1, 1.0, 0.1]), T_FREE, n=n,
+                      vary={"omega": jd.Normal([0.1, 1.0, 0.1], 0.05)}, rtol=RTOL, atol=ATOL,
+                      chunk_size=chunk, keep=False)
+    assert res.completed == n
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # MiB on Linux
+
+
+def memory(chunk):
+    rows = []
+    for k in (1, 4, 16):
+        n = k * chunk
+        proc = subprocess.run([sys.executable, __file__, "--memory-probe", str(n),
+                               "--chunk", str(chunk)], capture_output=True, text=True,
+                              check=True)
+        rows.append({"n": n, "peak_rss_mib": float(proc.stdout.strip().splitlines()[-1])})
+    return {"rows": rows, "peak_ratio_16_over_1_chunk":
+            rows[-1]["peak_rss_mib"] / rows[0]["peak_rss_mib"]}
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--n", type=int, default=100_000)
+    parser.add_argument("--chunk", type=int, default=8192)
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--scipy-n", type=int, default=200)
+    parser.add_argument("--quick", action="store_true", help="n = 16384, one repeat")
+    parser.add_argument("--memory-probe", type=int, default=None, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.memory_probe is not None:
+        print(memory_probe(args.memory_probe, args.chunk))
+        return
+    if args.quick:
+        args.n, args.repeats, args.scipy_n = 16384, 1, 50
+    rng = np.random.default_rng(2026)
+    start = time.perf_counter()
+    free = free_body(args.n, args.chunk, args.repeats, args.scipy_n, rng)
+    free["ratios"] = ratios(free)
+    rod_block = rod(args.n, args.chunk, args.repeats, args.scipy_n, rng)
+    rod_block["ratios"] = ratios(rod_block)
+    out = {
+        "benchmark": "montecarlo",
+        "machine": {"platform": platform.platform(), "processor": platform.processor(),
+                    "cpus": jax.device_count(), "device": jax.devices()[0].device_kind,
+                    "jax": jax.__version__, "jaxdyn": jd.__version__},
+        "settings": {"rtol": RTOL, "atol": ATOL, "chunk": args.chunk,
+                     "repeats": args.repeats, "check_subset": CHECK},
+        "torque_free": free,
+        "falling_rod": rod_block,
+        "memory": memory(args.chunk),
+        "wall_s": time.perf_counter() - start,
+    }
+    print(json.dumps(out, indent=2))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,271 @@
+"""Monte Carlo ensembles: physics against closed forms, per-trajectory failures, chunking,
+sharding across simulated devices and processes, interrupted runs that resume."""
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+import warnings
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import INTEGRATION, tol
+
+import jaxdyn as jd
+
+ROOT = Path(__file__).resolve().parent.parent
+WORKER = Path(__file__).resolve().parent / "_ensemble_worker.py"
+FREE = jd.Scene(jd.RigidBody(inertia=[1.0, 2.0, 2.5]))
+Y0 = FREE.state(omega=[0.1, 1.0, 0.1])
+VARY = {"omega": jd.Normal([0.1, 1.0, 0.1], 0.05), "inertia[0]": jd.Uniform(0.9, 1.1)}
+ROD = jd.Scene(jd.FallingRod(length=1.0))
+
+
+def _free(**kw):
+    kw = {"n": 48, "key": 1, "vary": VARY, "chunk_size": 16, "rtol": 1e-10, "atol": 1e-12,
+          **kw}
+    return jd.ensemble(FREE, Y0, 5.0, **kw)
+
+
+def _samples(n, key=1):
+    """The samples of `_free`, drawn again through the documented rule."""
+    def one(i):
+        k = jax.random.fold_in(jax.random.key(key), i)
+        from jaxdyn._distributions import name_seed
+
+        w = VARY["omega"].sample(jax.random.fold_in(k, name_seed("omega")), (3,), jnp.float64)
+        i0 = VARY["inertia[0]"].sample(jax.random.fold_in(k, name_seed("inertia[0]")), (),
+                                       jnp.float64)
+        return w, jnp.array([1.0, 2.0, 2.5]).at[0].set(i0)
+    return jax.vmap(one)(jnp.arange(n))
+
+
+@pytest.fixture(scope="module")
+def free_adaptive():
+    return _free()
+
+
+def test_final_rates_match_the_closed_form(free_adaptive):
+    res = free_adaptive
+    assert res.n == res.completed == 48 and res.failed == 0
+    w0, inertia = _samples(48)
+    exact = jax.vmap(lambda i, w: jd.torque_free_omega(i, w, 5.0))(inertia, w0)
+    assert np.allclose(res.values["omega"], exact, rtol=0, atol=100 * tol(INTEGRATION))
+    # Conserved quantities of each run, against the sampled initial state.
+    energy = 0.5 * jnp.sum(inertia * w0**2, axis=1)
+    assert np.allclose(res.values["energy"], energy, rtol=1e-9)
+    assert np.allclose(res.values["t_final"], 5.0)
+
+
+def test_modes_agree(free_adaptive):
+    for mode in ("lockstep", "vmap"):
+        other = _free(mode=mode)
+        assert np.allclose(other.values["omega"], free_adaptive.values["omega"], atol=1e-8)
+    lock = _free(mode="lockstep")
+    steps = lock.steps.reshape(3, 16)  # one step size for each chunk of 16
+    assert np.all(steps == steps[:, :1])
+
+
+def test_samples_do_not_depend_on_the_chunk_size(free_adaptive):
+    other = _free(chunk_size=48)
+    assert np.array_equal(other.values["omega"], free_adaptive.values["omega"])
+
+
+def test_statistics_are_those_of_the_kept_values(free_adaptive):
+    res = free_adaptive
+    v = res.values["energy"]
+    s = res.statistics["energy"]
+    assert s["count"] == 48
+    assert np.isclose(s["mean"], v.mean(), rtol=1e-13)
+    assert np.isclose(s["std"], v.std(ddof=1), rtol=1e-10)
+    assert s["min"] == v.min() and s["max"] == v.max()
+    assert np.isclose(s["quantiles"]["50%"], np.median(v))
+    # Statistics only: nothing is kept per trajectory, the same moments.
+    lean = _free(keep=False)
+    assert lean.values == {}
+    assert np.isclose(lean.statistics["energy"]["std"], s["std"], rtol=1e-12)
+
+
+def test_rod_fall_times_match_quadrature():
+    res = jd.ensemble(ROD, ROD.state(theta=0.01), 5.0, n=24, key=2, chunk_size=16,
+                      vary={"theta": jd.Uniform(0.005, 0.3), "theta_dot": jd.Normal(0.0, 0.05)})
+    assert res.completed == 24
+    assert res.status_counts() == {"event": 24}
+    theta = res.values["theta"]
+    assert np.allclose(np.abs(theta), np.pi / 2, atol=1e-10)  # every rod lies flat
+    # Independent route: the initial values are recovered from the energy integral.
+    rod = ROD.body
+    lo = jax.vmap(lambda i: jax.random.fold_in(jax.random.key(2), i))(jnp.arange(24))
+    from jaxdyn._distributions import name_seed
+
+    th0 = jax.vmap(lambda k: jd.Uniform(0.005, 0.3).sample(
+        jax.random.fold_in(k, name_seed("theta")), (), jnp.float64))(lo)
+    rate0 = jax.vmap(lambda k: jd.Normal(0.0, 0.05).sample(
+        jax.random.fold_in(k, name_seed("theta_dot")), (), jnp.float64))(lo)
+    fall = np.array([float(rod.fall_time(a, b)) for a, b in zip(th0, rate0)])
+    assert np.allclose(res.values["t_final"], fall, rtol=1e-7)
+
+
+def test_saved_times_and_a_custom_observation():
+    ts = jnp.linspace(0.0, 5.0, 11)
+
+    def observe(traj):
+        w2 = traj.ys["omega"][:, 1]
+        return {"min_w2": jnp.min(jnp.where(traj.valid, w2, jnp.inf)), "w2_at_ts": w2}
+
+    res = _free(n=8, ts=ts, observe=observe)
+    w0, inertia = _samples(8)
+    exact = jax.vmap(lambda i, w: jd.torque_free_omega(i, w, ts))(inertia, w0)
+    assert np.allclose(res.values["w2_at_ts"], exact[..., 1], atol=1e-8)
+    assert np.allclose(res.values["min_w2"], exact[..., 1].min(axis=1), atol=1e-8)
+
+
+def test_a_failing_trajectory_does_not_stop_the_batch():
+    # Inertia samples that break the triangle inequality, and a tiny step budget for fast spins.
+    res = jd.ensemble(FREE, Y0, 5.0, n=40, key=0, chunk_size=16,
+                      vary={"inertia[2]": jd.Uniform(2.5, 3.5)})
+    counts = res.status_counts()
+    assert counts["invalid_input"] == int(np.sum(res.status == 5)) > 0
+    assert counts["completed"] + counts["invalid_input"] == 40
+    (first,) = res.failures(1)
+    assert "triangle inequality" in first["message"]
+    short = _free(n=16, max_steps=25, rtol=1e-6, atol=1e-8,
+                  vary={"omega[1]": jd.Uniform(0.01, 8.0)})
+    assert set(short.status_counts()) == {"completed", "max_steps_reached"}
+    assert short.failures(1)[0]["status"] == "max_steps_reached"
+    report = short.report()
+    assert report["failed"] == short.failed > 0
+    json.dumps(report)
+
+
+def test_bad_input_is_named():
+    with pytest.raises(jd.ParameterError, match="unknown name 'spin'"):
+        _free(vary={"spin": jd.Normal(0.0, 1.0)})
+    with pytest.raises(jd.ParameterError, match="mode='fast'"):
+        _free(mode="fast")
+    with pytest.raises(jd.ParameterError, match="does not fit"):
+        _free(vary={"omega": jd.Normal([0.0, 1.0], 1.0)})
+    with pytest.raises(jd.ParameterError, match="std"):
+        jd.Normal(0.0, -1.0)
+    with pytest.raises(jd.ParameterError, match="explicit Runge-Kutta"):
+        import diffrax as dfx
+
+        _free(solver=dfx.Kvaerno5())
+
+
+def test_distribution_syntax():
+    assert jd.parse_distribution("normal(1, 0.5)") == jd.Normal(1.0, 0.5)
+    u = jd.parse_distribution("uniform([0, 1], [1, 2])")
+    assert np.array_equal(u.low, [0.0, 1.0])
+    assert np.isclose(float(jd.parse_distribution("2.5").value), 2.5)
+    for bad in ("gauss(0, 1)", "normal(0)", "normal(a, b)", "uniform(1, 0)"):
+        with pytest.raises(jd.ParameterError):
+            jd.parse_distribution(bad)
+    # Shifted and scaled: the distribution of c + X and c X, checked by sampling.
+    d = jd.LogNormal(1.0, 0.1).scaled(3.0)
+    x = d.sample(jax.random.key(0), (20000,), jnp.float64)
+    assert abs(float(jnp.median(x)) - 3.0) < 0.02
+    assert abs(float(jnp.std(jnp.log(x))) - 0.1) < 0.005
+
+
+def _worker(*args, env=None):
+    out = subprocess.run([sys.executable, str(WORKER), *args], capture_output=True,
+                         text=True, env=env, timeout=300)
+    assert out.returncode == 0, out.stderr[-3000:]
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.parametrize("mode", ["adaptive", "lockstep"])
+def test_sharded_across_devices_equals_one_device(mode):
+    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=4"}
+    sharded = _worker(mode, env=env)
+    single = _worker(mode, "--devices", "1", env=env)
+    assert sharded["local_devices"] == 4 and sharded["devices"] == 4 and single["devices"] == 1
+    assert sharded["status"] == single["status"]
+    assert sharded["steps"] == single["steps"]
+    np.testing.assert_allclose(sharded["omega"], single["omega"], rtol=1e-14, atol=1e-15)
+
+
+def test_processes_joined_by_jax_distributed_share_a_run(tmp_path):
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = str(s.getsockname()[1])
+    procs = [subprocess.Popen([sys.executable, str(WORKER), "adaptive", "--out",
+                               str(tmp_path / "shared"), "--process", str(i), "--processes",
+                               "2", "--port", port], stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True) for i in range(2)]
+    outs = [p.communicate(timeout=300) for p in procs]
+    for p, (_, err) in zip(procs, outs):
+        assert p.returncode == 0, err[-3000:]
+    results = [json.loads(o.strip().splitlines()[-1]) for o, _ in outs]
+    alone = _worker("adaptive")
+    for r in results:
+        assert r["process_count"] == 2
+        assert r["omega"] == alone["omega"] and r["status"] == alone["status"]
+    assert len(list((tmp_path / "shared").glob("chunk-*.npz"))) == 4  # 100 in chunks of 32
+
+
+def _cli(*args):
+    return [sys.executable, "-m", "jaxdyn", "montecarlo", "falling-rod", "--n", "2000",
+            "--chunk", "64", "--vary", "theta=uniform(0.001, 0.2)", "--json", *args]
+
+
+def test_an_interrupted_run_resumes_to_the_same_result(tmp_path):
+    out = tmp_path / "run"
+    proc = subprocess.Popen(_cli("--out", str(out), "--mode", "vmap"), stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE)
+    deadline = time.monotonic() + 240
+    while not list(out.glob("chunk-*.npz")) and proc.poll() is None:
+        assert time.monotonic() < deadline, "no chunk written"
+        time.sleep(0.005)
+    proc.send_signal(signal.SIGKILL)  # as a crash would
+    proc.wait()
+    written = len(list(out.glob("chunk-*.npz")))
+    assert 1 <= written < 32  # 2000 trajectories in chunks of 64
+    resumed = json.loads(subprocess.run(_cli("--out", str(out), "--mode", "vmap"),
+                                        capture_output=True, text=True, check=True).stdout)
+    whole = json.loads(subprocess.run(_cli("--mode", "vmap"), capture_output=True, text=True,
+                                      check=True).stdout)
+    assert resumed["resumed_chunks"] == written
+    assert resumed["statistics"] == whole["statistics"]
+    assert resumed["completed"] == whole["completed"] == 2000
+
+
+def test_corrupt_and_foreign_chunk_files_are_detected(tmp_path):
+    out = tmp_path / "run"
+    first = _free(n=40, out=out)
+    path = out / "chunk-000001.npz"
+    path.write_bytes(path.read_bytes()[:100])  # truncated, as a full disk might leave it
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        again = _free(n=40, out=out)
+    assert any("unreadable" in str(w.message) for w in caught)
+    assert again.recomputed_chunks == (1,) and again.resumed_chunks == 2
+    assert np.array_equal(again.values["omega"], first.values["omega"])
+    # A file from another chunk (or run) fails its checks.
+    (out / "chunk-000002.npz").write_bytes((out / "chunk-000000.npz").read_bytes())
+    with pytest.warns(UserWarning, match="another run"):
+        third = _free(n=40, out=out)
+    assert np.array_equal(third.values["omega"], first.values["omega"])
+    with pytest.raises(jd.ParameterError, match="different run"):
+        _free(n=40, out=out, rtol=1e-9)
+
+
+def test_montecarlo_command(tmp_path):
+    proc = subprocess.run(_cli(), capture_output=True, text=True, check=True)
+    out = json.loads(proc.stdout)
+    assert out["n"] == 2000 and out["completed"] == 2000 and out["failed"] == 0
+    t = out["statistics"]["t_final"]
+    rod = jd.FallingRod()
+    # Fall times between those of the extreme angles of the uniform draw.
+    assert rod.fall_time(0.2) < t["min"] < t["max"] < rod.fall_time(0.001)
+    bad = subprocess.run(_cli("--vary", "theta_dot=gauss(0, 1)"), capture_output=True, text=True)
+    assert bad.returncode == 2
+    assert bad.stderr.count("\n") == 1 and "gauss" in bad.stderr and "Traceback" not in bad.stderr
