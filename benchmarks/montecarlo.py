@@ -231,55 +231,64 @@ def lean_search(run, ref, target, first):
 
 # -- the two problems ----------------------------------------------------------------------------
 
-def free_body(n, chunk, repeats, scipy_n, rng):
-    w0 = np.array([0.1, 1.0, 0.1]) + 0.05 * rng.standard_normal((n, 3))
-    scene = jd.Scene(jd.RigidBody(inertia=list(INERTIA)))
-    ref = np.asarray(jax.jit(jax.vmap(lambda w: jd.torque_free_omega(
-        jnp.asarray(INERTIA), w, T_FREE)))(jnp.asarray(w0[:CHECK])))
-    out = {"problem": "torque-free body, rates only, t in [0, 20]", "n": n}
-
-    def ens(mode):
-        return jd.ensemble(scene, {"omega": w0}, T_FREE, rtol=RTOL, atol=ATOL, mode=mode,
-                           chunk_size=chunk, keep=("omega",))
-
+def compare(out, ens, observed, ref, inputs, plain_fn, scipy_fn, lean_fn, first_steps, *,
+            chunk, repeats, scipy_n):
+    """Every method on one problem: `ens(mode)` runs jaxdyn, `inputs` (n, state) the initial
+    states of the others, `lean_fn(inputs, steps)` the fixed-step kernel."""
+    n = len(inputs)
     for mode in ("adaptive", "lockstep"):
         res = ens(mode)
         seconds, _ = timed(lambda: ens(mode).status, repeats)
+        e = errors(res.values[observed][:CHECK], ref)
         out[f"jaxdyn_{mode}"] = {
             "trajectories_per_s": n / seconds, "seconds": seconds,
             "compile_s": res.timing["compile_s"], "failed": res.failed,
-            "mean_steps": float(res.steps.mean()),
-            "max_error": errors(res.values["omega"][:CHECK], ref)[0],
-            "median_error": errors(res.values["omega"][:CHECK], ref)[1]}
+            "mean_steps": float(res.steps.mean()), "max_error": e[0], "median_error": e[1]}
     target = out["jaxdyn_adaptive"]["max_error"]
 
-    plain = jax.jit(plain_free)
-    w0j = jnp.asarray(w0)
-    seconds, first = timed(lambda: plain(w0j), max(1, repeats // 2))
-    e = errors(plain(w0j)[:CHECK], ref)
+    plain = jax.jit(plain_fn)
+    x = jnp.asarray(inputs)
+    seconds, first = timed(lambda: plain(x), max(1, repeats // 2))
+    e = errors(plain(x)[:CHECK], ref)
     out["plain_vmap"] = {"trajectories_per_s": n / seconds, "seconds": seconds,
                          "compile_s": first - seconds, "max_error": e[0], "median_error": e[1]}
 
-    out["scipy_loop"] = scipy_rate(scipy_free, w0[:scipy_n], ref[:scipy_n], errors)
+    out["scipy_loop"] = scipy_rate(scipy_fn, inputs[:scipy_n], ref[:scipy_n], errors)
 
     runs = {}
 
     def lean(steps):
         if steps not in runs:
-            runs[steps] = jax.jit(lambda w: lean_free(w, steps))
-        return np.asarray(runs[steps](jnp.asarray(w0[:CHECK])))
-    steps, e = lean_search(lean, ref, target, 60)
-    fn = jax.jit(lambda w: jax.lax.map(lambda c: lean_free(c, steps),
-                                       w.reshape(-1, chunk, 3)).reshape(-1, 3))
-    whole = jax.jit(lambda w: lean_free(w, steps))
+            runs[steps] = jax.jit(lambda y: lean_fn(y, steps))
+        return np.asarray(runs[steps](x[:CHECK]))
+    steps, e = lean_search(lean, ref, target, first_steps)
+
+    def chunked(y):
+        r = jax.lax.map(lambda c: lean_fn(c, steps), y.reshape((-1, chunk) + y.shape[1:]))
+        return r.reshape((-1,) + r.shape[2:])
+    fn, whole = jax.jit(chunked), jax.jit(lambda y: lean_fn(y, steps))
     m = (n // chunk) * chunk
-    s_chunk, first = timed(lambda: fn(w0j[:m]), repeats)
-    s_whole, _ = timed(lambda: whole(w0j), repeats)
-    rate = max(m / s_chunk, n / s_whole)
-    out["lean_kernel"] = {"steps": steps, "trajectories_per_s": rate,
+    s_chunk, first = timed(lambda: fn(x[:m]), repeats)
+    s_whole, _ = timed(lambda: whole(x), repeats)
+    out["lean_kernel"] = {"steps": steps, "trajectories_per_s": max(m / s_chunk, n / s_whole),
                           "chunked_per_s": m / s_chunk, "whole_batch_per_s": n / s_whole,
                           "compile_s": first - s_chunk, "max_error": e[0], "median_error": e[1]}
     return out
+
+
+def free_body(n, chunk, repeats, scipy_n, rng):
+    w0 = np.array([0.1, 1.0, 0.1]) + 0.05 * rng.standard_normal((n, 3))
+    scene = jd.Scene(jd.RigidBody(inertia=list(INERTIA)))
+    ref = np.asarray(jax.jit(jax.vmap(lambda w: jd.torque_free_omega(
+        jnp.asarray(INERTIA), w, T_FREE)))(jnp.asarray(w0[:CHECK])))
+
+    def ens(mode):
+        return jd.ensemble(scene, {"omega": w0}, T_FREE, rtol=RTOL, atol=ATOL, mode=mode,
+                           chunk_size=chunk, keep=("omega",))
+
+    out = {"problem": "torque-free body, rates only, t in [0, 20]", "n": n}
+    return compare(out, ens, "omega", ref, w0, plain_free, scipy_free, lean_free, 60,
+                   chunk=chunk, repeats=repeats, scipy_n=scipy_n)
 
 
 def rod(n, chunk, repeats, scipy_n, rng):
@@ -287,51 +296,17 @@ def rod(n, chunk, repeats, scipy_n, rng):
     rate0 = 0.01 * rng.standard_normal(n)
     y0 = np.stack([theta0, rate0], axis=1)
     scene = jd.Scene(jd.FallingRod(length=LENGTH, g=G))
-    body = scene.body
-    ref = np.array([float(body.fall_time(a, b)) for a, b in y0[:CHECK]])
-    out = {"problem": "falling rod to impact (terminating event)", "n": n}
+    ref = np.array([float(scene.body.fall_time(a, b)) for a, b in y0[:CHECK]])
 
     def ens(mode):
         return jd.ensemble(scene, {"theta": theta0, "theta_dot": rate0}, T_ROD, rtol=RTOL,
                            atol=ATOL, mode=mode, chunk_size=chunk, keep=("t_final",))
 
-    for mode in ("adaptive", "lockstep"):
-        res = ens(mode)
-        seconds, _ = timed(lambda: ens(mode).status, repeats)
-        e = errors(res.values["t_final"][:CHECK], ref)
-        out[f"jaxdyn_{mode}"] = {
-            "trajectories_per_s": n / seconds, "seconds": seconds,
-            "compile_s": res.timing["compile_s"], "failed": res.failed,
-            "mean_steps": float(res.steps.mean()), "max_error": e[0], "median_error": e[1]}
-    target = out["jaxdyn_adaptive"]["max_error"]
-
-    plain = jax.jit(plain_rod)
-    y0j = jnp.asarray(y0)
-    seconds, first = timed(lambda: plain(y0j), max(1, repeats // 2))
-    e = errors(plain(y0j)[:CHECK], ref)
-    out["plain_vmap"] = {"trajectories_per_s": n / seconds, "seconds": seconds,
-                         "compile_s": first - seconds, "max_error": e[0], "median_error": e[1]}
-
-    out["scipy_loop"] = scipy_rate(scipy_rod, y0[:scipy_n], ref[:scipy_n], errors)
-
-    runs = {}
-
-    def lean(steps):  # steps per second of simulated time
-        if steps not in runs:
-            runs[steps] = jax.jit(lambda y: lean_rod(y, 1.0 / steps))
-        return np.asarray(runs[steps](jnp.asarray(y0[:CHECK])))
-    steps, e = lean_search(lean, ref, target, 20)
-    fn = jax.jit(lambda y: jax.lax.map(lambda c: lean_rod(c, 1.0 / steps),
-                                       y.reshape(-1, chunk, 2)).reshape(-1))
-    whole = jax.jit(lambda y: lean_rod(y, 1.0 / steps))
-    m = (n // chunk) * chunk
-    s_chunk, first = timed(lambda: fn(y0j[:m]), repeats)
-    s_whole, _ = timed(lambda: whole(y0j), repeats)
-    out["lean_kernel"] = {"steps_per_unit_time": steps,
-                          "trajectories_per_s": max(m / s_chunk, n / s_whole),
-                          "chunked_per_s": m / s_chunk, "whole_batch_per_s": n / s_whole,
-                          "compile_s": first - s_chunk, "max_error": e[0], "median_error": e[1]}
-    return out
+    out = {"problem": "falling rod to impact (terminating event)", "n": n,
+           "lean_steps_are": "steps per unit of simulated time"}
+    return compare(out, ens, "t_final", ref, y0, plain_rod, scipy_rod,
+                   lambda y, steps: lean_rod(y, 1.0 / steps), 20,
+                   chunk=chunk, repeats=repeats, scipy_n=scipy_n)
 
 
 def ratios(block):

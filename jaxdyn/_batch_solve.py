@@ -81,12 +81,6 @@ def tableau(solver: Any) -> Tableau:
     )
 
 
-def _bcast(v, x):
-    """`v` of shape (n,) against a leaf `x` of shape (..., n): the batch axis is the last one,
-    so that each component of the state is one contiguous row (a structure of arrays)."""
-    return v
-
-
 def _combine(y, h, coefs, fs):
     """`y + h * sum_j coefs[j] * fs[j]` leaf by leaf, skipping zero coefficients."""
     def leaf(y_leaf, *f_leaves):
@@ -96,7 +90,7 @@ def _combine(y, h, coefs, fs):
                 acc = c * f if acc is None else acc + c * f
         if acc is None:
             return y_leaf if y is not None else jnp.zeros_like(f_leaves[0])
-        acc = _bcast(h, acc) * acc
+        acc = h * acc  # h: (n,), the batch axis is last
         return acc if y is None else y_leaf + acc
 
     if y is None:
@@ -105,7 +99,7 @@ def _combine(y, h, coefs, fs):
 
 
 def _where(mask, a, b):
-    return jax.tree.map(lambda x, z: jnp.where(_bcast(mask, x), x, z), a, b)
+    return jax.tree.map(lambda x, z: jnp.where(mask, x, z), a, b)
 
 
 def _rms(tree, n):
@@ -251,7 +245,7 @@ def batch_solve(
         d0 = _rms(jax.tree.map(jnp.divide, y0, scale), n)
         d1 = _rms(jax.tree.map(jnp.divide, f0, scale), n)
         h0 = jnp.where((d0 < 1e-5) | (d1 < 1e-5), 1e-6, 0.01 * d0 / d1)
-        y_euler = jax.tree.map(lambda y, f: y + _bcast(h0, f) * f, y0, f0)
+        y_euler = jax.tree.map(lambda y, f: y + h0 * f, y0, f0)
         f_euler = field(tvec + h0, y_euler)
         d2 = _rms(jax.tree.map(lambda a, b, s: (a - b) / s, f_euler, f0, scale), n) / h0
         dmax = jnp.maximum(d1, d2)

@@ -22,7 +22,7 @@ from ._validation import ParameterError
 _FORMAT = 1
 
 
-def _digest(arrays: dict[str, np.ndarray]) -> str:
+def digest(arrays: dict[str, np.ndarray]) -> str:
     h = hashlib.sha256()
     for name in sorted(arrays):
         a = np.ascontiguousarray(arrays[name])
@@ -86,7 +86,7 @@ class ChunkStore:
         return self.directory / f"chunk-{index:06d}.npz"
 
     def write(self, index: int, arrays: dict[str, np.ndarray]) -> None:
-        meta = {"fingerprint": self.fingerprint, "index": index, "sha256": _digest(arrays)}
+        meta = {"fingerprint": self.fingerprint, "index": index, "sha256": digest(arrays)}
         payload = {f"data/{k}": np.asarray(v) for k, v in arrays.items()}
         payload["meta"] = np.frombuffer(json.dumps(meta).encode(), np.uint8)
         _atomic_write(self.path(index), lambda f: np.savez(f, **payload))
@@ -110,7 +110,7 @@ class ChunkStore:
         else:
             if meta.get("fingerprint") != self.fingerprint or meta.get("index") != index:
                 why = "written by another run"
-            elif meta.get("sha256") != _digest(arrays):
+            elif meta.get("sha256") != digest(arrays):
                 why = "checksum mismatch (corrupt)"
         if why is not None:
             warnings.warn(f"chunk file {path} is {why}: computing the chunk again",

@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._batch_solve import STATUS, STATUS_HELP, batch_solve, tableau
-from ._chunkstore import ChunkStore
+from ._chunkstore import ChunkStore, digest
 from ._distributions import AbstractDistribution, name_seed, split_name
 from ._scene import Scene
 from ._simulate import Trajectory, _prepare_run, _simulate
@@ -328,7 +328,7 @@ def _compiled_chunk(dyn, static, sharded, config, devices):
     start = time.perf_counter()
     compiled = jax.jit(body).lower(dyn, sharded).compile()
     seconds = time.perf_counter() - start
-    _COMPILED[key] = (compiled, sharding, static)
+    _COMPILED[key] = (compiled, sharding)
     return _COMPILED[key], seconds
 
 
@@ -501,7 +501,7 @@ def ensemble(
             "scene": repr(jax.tree.map(lambda x: np.asarray(x).tolist()
                                        if eqx.is_array(x) else x, scene)),
             "y0": {k: np.asarray(v).tolist() for k, v in y_single.items()},
-            "batched": {k: _digest_array(v) for k, v in {**y_batch, **p_batch}.items()},
+            "batched": {k: digest({k: np.asarray(v)}) for k, v in {**y_batch, **p_batch}.items()},
             "parameters": {k: np.asarray(v).tolist() for k, v in p_single.items()},
             "vary": {name: repr(d) for name, d in vary.items()},
             "key": np.asarray(jax.random.key_data(key)).tolist(),
@@ -539,7 +539,7 @@ def ensemble(
         sharded = (jnp.asarray(idx, jnp.uint32),
                    {k: jnp.asarray(np.asarray(v)[rows], dtype) for k, v in y_batch.items()},
                    {k: jnp.asarray(np.asarray(v)[rows]) for k, v in p_batch.items()})
-        (fn, sharding, _), seconds = _compiled_chunk(dyn, static, sharded, config, devices)
+        (fn, sharding), seconds = _compiled_chunk(dyn, static, sharded, config, devices)
         compile_s += seconds
         if sharding is not None:
             sharded = jax.device_put(sharded, sharding)
@@ -610,13 +610,6 @@ def ensemble(
         devices=len(devices), timing=timing, resumed_chunks=resumed,
         recomputed_chunks=tuple(store.recomputed) if store is not None else (),
     )
-
-
-def _digest_array(v) -> str:
-    import hashlib
-
-    a = np.ascontiguousarray(np.asarray(v))
-    return hashlib.sha256(a.tobytes() + str(a.shape).encode() + str(a.dtype).encode()).hexdigest()
 
 
 def _wait_for_chunks(store, missing, timeout: float = 24 * 3600.0, poll: float = 0.5):

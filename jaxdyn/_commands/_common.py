@@ -10,6 +10,25 @@ def enable_x64() -> None:
     jax.config.update("jax_enable_x64", True)
 
 
+def add_scene_arguments(p, *, default_scene: str | None = None) -> None:
+    """The arguments every simulating command shares: the scene, `--set`, `--t1`, `--max-steps`
+    and `--json`."""
+    scene_help = "a built-in scene name (see 'jaxdyn scenes') or a TOML scene file"
+    if default_scene is None:
+        p.add_argument("scene", help=scene_help)
+    else:
+        p.add_argument("scene", nargs="?", default=default_scene,
+                       help=f"{scene_help} (default: {default_scene})")
+    p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
+                   help="override a parameter, e.g. --set theta0=0.1 or "
+                        "--set inertia=1,2,3 (repeatable)")
+    p.add_argument("--t1", type=float, help="final time (s)")
+    p.add_argument("--max-steps", type=int, default=100_000,
+                   help="solver step budget per run; exceeding it is an error or, in an "
+                        "ensemble, a failed trajectory (default 100000)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+
+
 def parse_sets(items: list[str]) -> dict[str, Any]:
     """`--set NAME=VALUE` items as a dict of parsed values."""
     from .._scenefile import parse_value

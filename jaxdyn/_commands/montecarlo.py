@@ -2,7 +2,7 @@
 
 import time
 
-from ._common import emit, enable_x64, parse_sets
+from ._common import add_scene_arguments, emit, enable_x64, parse_sets
 
 HELP = "Monte Carlo ensemble of a scene: statistics of its outputs"
 
@@ -10,32 +10,26 @@ HELP = "Monte Carlo ensemble of a scene: statistics of its outputs"
 def add_arguments(p) -> None:
     from .._distributions import DISTRIBUTION_SYNTAX
 
-    p.add_argument("scene", help="a built-in scene name (see 'jaxdyn scenes') or a TOML file")
+    add_scene_arguments(p)
     p.add_argument("--n", type=int, required=True, help="number of trajectories")
     p.add_argument("--vary", action="append", default=[], metavar="NAME=DIST",
                    help=f"a varied quantity (repeatable): {DISTRIBUTION_SYNTAX}; e.g. "
                         "--vary 'omega[0]+=normal(0, 0.01)' --vary 'inertia*=lognormal(1, 0.01)'")
-    p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
-                   help="override a scene value first, as for 'jaxdyn run'")
-    p.add_argument("--t1", type=float, help="final time (s)")
     p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     p.add_argument("--mode", choices=("adaptive", "lockstep", "vmap"), default="adaptive",
                    help="per-trajectory steps (default), one step size for the batch, or "
                         "jax.vmap over simulate (any scene)")
     p.add_argument("--chunk", type=int, help="trajectories per compiled call (default 8192)")
-    p.add_argument("--max-steps", type=int, default=100_000,
-                   help="step budget per trajectory (default 100000)")
     p.add_argument("--out", metavar="DIR",
                    help="write each finished chunk here; run again to resume")
     p.add_argument("--progress", action="store_true", help="show a progress bar")
-    p.add_argument("--json", action="store_true", help="print one JSON object")
 
 
 def run(args) -> int:
     enable_x64()
     import numpy as np
 
-    from .._distributions import parse_vary
+    from .._distributions import parse_vary, split_name
     from .._ensemble import ensemble
     from .._scenefile import load_scene
     from .._validation import ParameterError
@@ -52,17 +46,14 @@ def run(args) -> int:
     for text in args.vary:
         name, op, dist = parse_vary(text)
         if op != "=":
-            base = name.split("[")[0]
-            nominal = y0.get(base, params.get(base))
+            base, index = split_name(name)
+            nominal = y0[base] if base in y0 else params.get(base)
             if nominal is None:
                 raise ParameterError(
                     f"--vary {text!r}: unknown name {base!r}: parameters {sorted(params)}, "
                     f"initial values {sorted(y0)}")
             nominal = np.asarray(nominal, float)
-            if "[" in name:
-                from .._distributions import split_name
-
-                nominal = nominal[split_name(name)[1]]
+            nominal = nominal if index is None else nominal[index]
             dist = dist.shifted(nominal) if op == "+=" else dist.scaled(nominal)
         if name in vary:
             raise ParameterError(f"--vary {text!r}: {name} is varied twice")

@@ -3,24 +3,15 @@
 import time
 from typing import Any
 
-from ._common import emit, enable_x64, parse_sets
+from ._common import add_scene_arguments, emit, enable_x64, parse_sets
 
 HELP = "simulate a scene and summarise it"
 
 
 def add_arguments(run) -> None:
-    run.add_argument("scene", nargs="?", default="falling-rod",
-                     help="a built-in scene name (see 'jaxdyn scenes') or a TOML scene file "
-                          "(default: falling-rod)")
-    run.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
-                     help="override a parameter, e.g. --set theta0=0.1 or "
-                          "--set inertia=1,2,3 (repeatable)")
-    run.add_argument("--t1", type=float, help="final time (s)")
+    add_scene_arguments(run, default_scene="falling-rod")
     run.add_argument("--samples", type=int, default=2001,
                      help="number of saved samples over the run (default 2001)")
-    run.add_argument("--max-steps", type=int, default=100_000,
-                     help="solver step budget; exceeding it is an error (default 100000)")
-    run.add_argument("--json", action="store_true", help="print one JSON object")
     run.add_argument("--plot", metavar="FILE", help="write a PNG figure")
 
 
