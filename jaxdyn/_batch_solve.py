@@ -50,6 +50,13 @@ STATUS_HELP = {
 }
 
 _SAFETY, _FACTOR_MIN, _FACTOR_MAX = 0.9, 0.2, 10.0
+_RUNNING = -1  # the status of a trajectory still being integrated
+
+COMPACT_ROWS = 1024
+"""The default of `batch_solve`'s `compact_rows` in ensembles. Per-trajectory stepping compacts
+the batch: once at most half of it is still running, those
+trajectories move to a batch of half the size, down to this many rows. The loop then costs what
+the running trajectories cost, not what the slowest one in the chunk costs."""
 
 
 class Tableau(NamedTuple):
@@ -98,15 +105,30 @@ def _combine(y, h, coefs, fs):
     return jax.tree.map(leaf, y, *fs[: len(coefs)])
 
 
+def _inv_root(x, p: int, iterations: int = 3):
+    """`x ** (-1 / p)` for `x` in `[1e-12, 1e12]`, to about 1e-5 (p <= 8), by Newton's method
+    from a guess read off the float32 exponent.
+
+    A few dozen vectorised operations; `x ** y` would call the C library's scalar `pow` once per
+    element, which on a CPU cost a third of a step. (The guess is made in float32, whose
+    integer conversions vectorise everywhere.)"""
+    x32 = x.astype(jnp.float32)
+    one = jax.lax.bitcast_convert_type(jnp.float32(1), jnp.int32)
+    bits = jax.lax.bitcast_convert_type(x32, jnp.int32)
+    guess = one - ((bits - one).astype(jnp.float32) * (1.0 / p)).astype(jnp.int32)
+    y = jax.lax.bitcast_convert_type(guess, jnp.float32).astype(x.dtype)
+    for _ in range(iterations):
+        y = y * ((p + 1) - x * y**p) * (1.0 / p)
+    return y
+
+
 def _where(mask, a, b):
     return jax.tree.map(lambda x, z: jnp.where(mask, x, z), a, b)
 
 
-def _rms(tree, n):
-    leaves = jax.tree.leaves(tree)
-    total = sum(jnp.sum((x * x).reshape(-1, n), axis=0) for x in leaves)
-    count = sum(int(np.prod(x.shape[:-1])) for x in leaves)
-    return jnp.sqrt(total / count)
+def _rms(rows):
+    """Root mean square over a tuple of rows."""
+    return jnp.sqrt(sum(x * x for x in rows) / len(rows))
 
 
 def _last(tree):
@@ -132,6 +154,7 @@ def batch_solve(
     field: Callable, conditions: Callable | None, event_names: tuple[str, ...],
     flags, params, y0, t0, t1, ts, *, solver, rtol, atol, max_steps: int,
     lockstep: bool, dt0=None, axis_name: str | None = None,
+    compact_rows: int | None = None,
 ) -> BatchRun:
     """Integrate a batch of `n` trajectories from `t0` to `t1`.
 
@@ -146,19 +169,22 @@ def batch_solve(
     - `lockstep`: one step size for the whole batch (the smallest any trajectory needs).
     - `axis_name`: the mesh axis when the batch is one shard of a larger batch; lock-step
       reductions then span every shard, so that sharded and unsharded runs agree.
+    - `compact_rows`: per-trajectory stepping moves the running trajectories to a batch of half
+      the size whenever at most half are running, down to this many rows (`None`: never).
+      Every trajectory's arithmetic is the same either way.
     """
     tab = tableau(solver)
     n = jax.tree.leaves(y0)[0].shape[0]
-    # Inside the loop the state is a tuple of rows, one (n,) array per scalar component, so
+    # Inside the loop the state is a tuple of rows, one (m,) array per scalar component, so
     # that every stage is a handful of fused passes over contiguous memory.
     treedef = jax.tree.structure(y0)
     shapes = [x.shape[1:] for x in jax.tree.leaves(y0)]
 
-    def to_rows(tree):  # leaves (..., *shape, n) -> rows (..., n)
+    def to_rows(tree):  # leaves (..., *shape, m) -> rows (..., m)
         out = []
         for x, shape in zip(jax.tree.leaves(tree), shapes):
             lead = x.shape[: x.ndim - len(shape) - 1]
-            x = x.reshape(lead + (-1, n))
+            x = x.reshape(lead + (-1, x.shape[-1]))
             out += [x[..., i, :] for i in range(x.shape[-2])]
         return tuple(out)
 
@@ -167,27 +193,30 @@ def batch_solve(
         for shape in shapes:
             size = int(np.prod(shape))
             x = jnp.stack(rows[i: i + size], axis=-2)
-            leaves.append(x.reshape(x.shape[:-2] + tuple(shape) + (n,)))
+            leaves.append(x.reshape(x.shape[:-2] + tuple(shape) + x.shape[-1:]))
             i += size
         return jax.tree.unflatten(treedef, leaves)
 
     y0, params = to_rows(_last(y0)), _last(params)
-    batched = jax.vmap(field, in_axes=(-1, 0, -1), out_axes=-1)
+    batched_field = jax.vmap(field, in_axes=(-1, 0, -1), out_axes=-1)
 
-    def field(t, y, batched=batched):
-        return to_rows(batched(params, t, from_rows(y)))
+    def f(p, t, y):
+        return to_rows(batched_field(p, t, from_rows(y)))
 
     if conditions is not None:
         batched_c = jax.vmap(conditions, in_axes=(-1, 0, -1), out_axes=0)
 
-        def conditions(t, y, batched_c=batched_c):
-            return batched_c(params, t, from_rows(y))
+        def G(p, t, y):  # the earliest of the events: the run goes on while it is positive
+            return jnp.min(batched_c(p, t, from_rows(y)), axis=1)
 
-    dtype = jax.tree.leaves(y0)[0].dtype
+    dtype = y0[0].dtype
     t0 = jnp.asarray(t0, dtype)
     t1 = jnp.asarray(t1, dtype)
     eps = jnp.finfo(dtype).eps
     interp_cls = solver.interpolation_cls
+    stages = len(tab.a) + 1
+    S = 0 if ts is None else ts.shape[0]
+    EVENT = STATUS.index("event")
 
     def bmin(x):
         m = jnp.min(x)
@@ -197,21 +226,16 @@ def batch_solve(
         m = jnp.any(x)
         return m if axis_name is None else jax.lax.psum(m.astype(jnp.int32), axis_name) > 0
 
-    def G(t, y):  # the earliest of the events: the run goes on while it is positive
-        return jnp.min(conditions(t, y), axis=1)
-
     def interpolate(ta, tb, ya, yb, k, s):
         def one(ta, tb, ya, yb, k, s):
             return interp_cls(t0=ta, t1=tb, y0=ya, y1=yb, k=k).evaluate(s)
         return jax.vmap(one, in_axes=(0, 0, -1, -1, -1, 0), out_axes=-1)(ta, tb, ya, yb, k, s)
 
-    rows = jnp.arange(n)
-
     def save(saved, nxt, active, bound, value_at):
         """Save the states at every save time `<= bound` not saved yet, for `active` rows."""
         if ts is None:
             return saved, nxt
-        S = ts.shape[0]
+        rows = jnp.arange(nxt.shape[0])
 
         def pending(nxt):
             return active & (nxt < S) & (ts[jnp.minimum(nxt, S - 1)] <= bound)
@@ -221,8 +245,8 @@ def batch_solve(
             m = pending(nxt)
             col = jnp.minimum(nxt, S - 1)
             val = value_at(ts[col])
-            saved = jax.tree.map(
-                lambda a, v: a.at[col, rows].set(jnp.where(m, v, a[col, rows])), saved, val)
+            saved = tuple(a.at[col, rows].set(jnp.where(m, v, a[col, rows]))
+                          for a, v in zip(saved, val))
             return saved, nxt + m.astype(nxt.dtype)
 
         return jax.lax.while_loop(lambda c: jnp.any(pending(c[1])), body, (saved, nxt))
@@ -230,24 +254,21 @@ def batch_solve(
     # -- start ----------------------------------------------------------------------------------
     invalid = jnp.any(flags, axis=1)
     reason = jnp.argmax(flags, axis=1).astype(jnp.int32)
-    status = jnp.where(invalid, STATUS.index("invalid_input"), 0).astype(jnp.int32)
-    done = invalid
+    status = jnp.where(invalid, STATUS.index("invalid_input"), _RUNNING).astype(jnp.int32)
     tvec = jnp.full((n,), t0)
-    f0 = field(tvec, y0)
+    f0 = f(params, tvec, y0)
     if conditions is not None:
-        at_start = (G(tvec, y0) <= 0) & ~done
-        status = jnp.where(at_start, STATUS.index("event"), status)
-        done = done | at_start
+        at_start = (G(params, tvec, y0) <= 0) & ~invalid
+        status = jnp.where(at_start, EVENT, status)
     else:
         at_start = jnp.zeros((n,), bool)
-    if dt0 is None:
-        scale = jax.tree.map(lambda y: atol + rtol * jnp.abs(y), y0)
-        d0 = _rms(jax.tree.map(jnp.divide, y0, scale), n)
-        d1 = _rms(jax.tree.map(jnp.divide, f0, scale), n)
+    if dt0 is None:  # Hairer, Norsett & Wanner's starting step, as diffrax chooses it
+        scale = tuple(atol + rtol * jnp.abs(y) for y in y0)
+        d0 = _rms(tuple(y / s for y, s in zip(y0, scale)))
+        d1 = _rms(tuple(k / s for k, s in zip(f0, scale)))
         h0 = jnp.where((d0 < 1e-5) | (d1 < 1e-5), 1e-6, 0.01 * d0 / d1)
-        y_euler = jax.tree.map(lambda y, f: y + h0 * f, y0, f0)
-        f_euler = field(tvec + h0, y_euler)
-        d2 = _rms(jax.tree.map(lambda a, b, s: (a - b) / s, f_euler, f0, scale), n) / h0
+        f_euler = f(params, tvec + h0, tuple(y + h0 * k for y, k in zip(y0, f0)))
+        d2 = _rms(tuple((a - b) / s for a, b, s in zip(f_euler, f0, scale))) / h0
         dmax = jnp.maximum(d1, d2)
         h1 = jnp.where(dmax <= 1e-15, jnp.maximum(1e-6, h0 * 1e-3),
                        (0.01 / dmax) ** (1.0 / tab.order))
@@ -257,43 +278,39 @@ def batch_solve(
         dt = jnp.full((n,), jnp.asarray(dt0, dtype))
     dt = jnp.minimum(dt, t1 - t0).astype(dtype)
     if lockstep:
-        dt = jnp.full((n,), bmin(jnp.where(done, jnp.inf, dt)))
+        dt = jnp.full((n,), bmin(jnp.where(status == _RUNNING, dt, jnp.inf)))
 
-    S = 0 if ts is None else ts.shape[0]
-    saved = None if ts is None else jax.tree.map(
-        lambda y: jnp.full((S,) + y.shape, jnp.inf, dtype), y0)
-    nxt = jnp.zeros((n,), jnp.int32)
-    saved, nxt = save(saved, nxt, ~invalid, t0, lambda s: y0)
-    stages = len(tab.a) + 1
-    cross0 = None
-    if conditions is not None:
-        cross0 = (tvec, tvec, y0, y0,
-                  jax.tree.map(lambda y: jnp.zeros((stages,) + y.shape, dtype), y0))
+    saved = None if ts is None else tuple(jnp.full((S, n), jnp.inf, dtype) for _ in y0)
+    saved, nxt = save(saved, jnp.zeros((n,), jnp.int32), ~invalid, t0, lambda s: y0)
+    cross = None
+    if conditions is not None:  # the step in which each trajectory's event fired
+        cross = (tvec, tvec, y0, y0, tuple(jnp.zeros((stages, n), dtype) for _ in y0))
     zeros = jnp.zeros((n,), jnp.int32)
-    carry = (tvec, y0, f0, dt, done, status, zeros, zeros, saved, nxt, cross0,
-             jnp.zeros((n,), bool))
+    # Every array in the carry has the batch as its last axis, so that the batch can be
+    # compacted by one gather.
+    carry = dict(t=tvec, y=y0, fa=f0, dt=dt, status=status, nacc=zeros, nrej=zeros, p=params,
+                 saved=saved, nxt=nxt, cross=cross)
 
     # -- steps ----------------------------------------------------------------------------------
-    def step(carry):
-        t, y, fa, dt, done, status, nacc, nrej, saved, nxt, cross, crossed = carry
-        alive = ~done
+    def step(c):
+        t, y, fa, dt, status, p = c["t"], c["y"], c["fa"], c["dt"], c["status"], c["p"]
+        alive = status == _RUNNING
         h = jnp.where(alive, jnp.minimum(dt, t1 - t), 0.0)
         if lockstep:
             h = jnp.where(alive, bmin(jnp.where(alive, h, jnp.inf)), 0.0)
-        fs = [fa if tab.fsal else field(t, y)]
-        for row, c in zip(tab.a, tab.c):
-            fs.append(field(t + c * h, _combine(y, h, row, fs)))
+        fs = [fa if tab.fsal else f(p, t, y)]
+        for row, ci in zip(tab.a, tab.c):
+            fs.append(f(p, t + ci * h, _combine(y, h, row, fs)))
         y1 = _combine(y, h, tab.b, fs)
         err = _combine(None, h, tab.e, fs)
-        scaled = jax.tree.map(
-            lambda e, a, b: e / (atol + rtol * jnp.maximum(jnp.abs(a), jnp.abs(b))), err, y, y1)
-        norm = _rms(scaled, n)
+        norm = _rms(tuple(e / (atol + rtol * jnp.maximum(jnp.abs(a), jnp.abs(b)))
+                          for e, a, b in zip(err, y, y1)))
         finite = jnp.isfinite(norm)
         ok = finite & (norm <= 1.0)
         if lockstep:
-            ok = jnp.full((n,), ~bany(alive & ~ok))
+            ok = jnp.full(ok.shape, ~bany(alive & ~ok))
         accept = alive & ok
-        factor = jnp.clip(_SAFETY * jnp.where(norm > 0, norm, 1.0) ** (-1.0 / tab.order),
+        factor = jnp.clip(_SAFETY * _inv_root(jnp.clip(norm, 1e-12, 1e12), tab.order),
                           _FACTOR_MIN, _FACTOR_MAX)
         factor = jnp.where(norm == 0, _FACTOR_MAX, factor)
         factor = jnp.where(finite, factor, _FACTOR_MIN)
@@ -303,39 +320,56 @@ def batch_solve(
             dt_new = jnp.where(alive, bmin(jnp.where(alive, dt_new, jnp.inf)), dt)
         reached = accept & (t + h >= t1)
         t_new = jnp.where(reached, t1, jnp.where(accept, t + h, t))
-        ks = jax.tree.map(lambda *f: h * jnp.stack(f, axis=0), *fs)
-        hit = jnp.zeros((n,), bool)
+        ks = tuple(h * jnp.stack(k, axis=0) for k in zip(*fs))
+        hit = jnp.zeros(alive.shape, bool)
+        cross = c["cross"]
         if conditions is not None:
-            hit = accept & (G(t_new, y1) <= 0)
+            hit = accept & (G(p, t_new, y1) <= 0)
             cross = _where(hit, (t, t_new, y, y1, ks), cross)
         # Save the states at the save times passed in this step (for a step that ends in an
         # event, after the event has been located).
-        saved, nxt = save(saved, nxt, accept & ~hit, t_new,
-                          lambda s: interpolate(t, t_new, y, y1, ks, jnp.full((n,), s)))
+        saved, nxt = save(c["saved"], c["nxt"], accept & ~hit, t_new,
+                          lambda s: interpolate(t, t_new, y, y1, ks, jnp.full(t.shape, s)))
         underflow = alive & ~accept & (dt_new <= 4 * eps * jnp.maximum(jnp.abs(t), 1.0))
-        nacc = nacc + accept.astype(jnp.int32)
-        nrej = nrej + (alive & ~accept).astype(jnp.int32)
+        nacc = c["nacc"] + accept.astype(jnp.int32)
+        nrej = c["nrej"] + (alive & ~accept).astype(jnp.int32)
         out_of_steps = alive & ~reached & ~hit & (nacc + nrej >= max_steps)
-        status = jnp.where(hit, STATUS.index("event"), status)
-        status = jnp.where(out_of_steps, STATUS.index("max_steps_reached"), status)
-        status = jnp.where(underflow, jnp.where(finite, STATUS.index("step_size_underflow"),
-                                                STATUS.index("non_finite")), status)
-        done = done | reached | hit | out_of_steps | underflow
-        y = _where(accept, y1, y)
-        fa = _where(accept, fs[-1], fa) if tab.fsal else fa
-        return (t_new, y, fa, dt_new, done, status, nacc, nrej, saved, nxt, cross,
-                crossed | hit)
+        # (nested selects: jnp.select would reduce over the stacked conditions)
+        status = jnp.where(reached, STATUS.index("completed"), jnp.where(
+            hit, EVENT, jnp.where(out_of_steps, STATUS.index("max_steps_reached"), jnp.where(
+                underflow, jnp.where(finite, STATUS.index("step_size_underflow"),
+                                     STATUS.index("non_finite")), status))))
+        return dict(t=t_new, y=_where(accept, y1, y),
+                    fa=_where(accept, fs[-1], fa) if tab.fsal else fa, dt=dt_new,
+                    status=status, nacc=nacc, nrej=nrej, p=p, saved=saved, nxt=nxt, cross=cross)
 
-    carry = jax.lax.while_loop(lambda c: bany(~c[4]), step, carry)
-    t, y, _, _, done, status, nacc, nrej, saved, nxt, cross, crossed = carry
+    def running(c):
+        return c["status"] == _RUNNING
+
+    def advance(c, m):
+        """Step until every trajectory of this (sub-)batch of `m` rows has finished."""
+        if lockstep or compact_rows is None or m < 2 * max(compact_rows, 1):
+            return jax.lax.while_loop(lambda c: bany(running(c)), step, c)
+        # Per-trajectory steps need nothing from other trajectories (nor other shards), so the
+        # running ones can move to a smaller batch.
+        half = m // 2
+        c = jax.lax.while_loop(lambda c: jnp.sum(running(c)) > half, step, c)
+        order = jnp.argsort(~running(c), stable=True)[:half]  # the running rows first
+        sub = advance(jax.tree.map(lambda x: x[..., order], c), half)
+        return jax.tree.map(lambda x, s: x.at[..., order].set(s), c, sub)
+
+    carry = advance(carry, n)
+    t, y, status, p = carry["t"], carry["y"], carry["status"], carry["p"]
+    saved, nxt = carry["saved"], carry["nxt"]
 
     # -- events ---------------------------------------------------------------------------------
     event = {}
     if conditions is not None:
-        ta, tb, ya, yb, ks = cross
+        ta, tb, ya, yb, ks = carry["cross"]
+        crossed = (status == EVENT) & ~at_start
 
         def g(s):
-            return G(s, interpolate(ta, tb, ya, yb, ks, s))
+            return G(p, s, interpolate(ta, tb, ya, yb, ks, s))
 
         # Illinois: regula falsi that halves the weight of an end point kept twice.
         ga, gb = g(ta), g(tb)
@@ -363,11 +397,11 @@ def batch_solve(
                           lambda s: interpolate(ta, tb, ya, yb, ks, jnp.full((n,), s)))
         t = jnp.where(crossed, t_event, t)
         y = _where(crossed, y_event, y)
-        values = conditions(t, y)
+        values = batched_c(p, t, from_rows(y))
         first = jnp.argmin(values, axis=1)
         for j, name in enumerate(event_names):
             event[name] = (crossed & (first == j)) | (at_start & (values[:, j] <= 0))
     if saved is not None:  # rows (S, n) -> leaves (n, S, ...)
         saved = jax.tree.map(lambda a: jnp.moveaxis(a, -1, 0), from_rows(saved))
-    return BatchRun(t_final=t, y_final=_first(from_rows(y)), ys=saved, event=event, status=status,
-                    reason=reason, steps=nacc, rejected=nrej)
+    return BatchRun(t_final=t, y_final=_first(from_rows(y)), ys=saved, event=event,
+                    status=status, reason=reason, steps=carry["nacc"], rejected=carry["nrej"])

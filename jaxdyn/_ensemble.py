@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import _batch_solve
 from ._batch_solve import STATUS, STATUS_HELP, batch_solve, tableau
 from ._chunkstore import ChunkStore, digest
 from ._distributions import AbstractDistribution, name_seed, split_name
@@ -127,19 +128,15 @@ class _Moments:
     """Count, mean, sum of squared deviations, min and max, merged chunk by chunk (Chan et
     al. 1979), per component, over finite values."""
 
+    FIELDS = ("count", "mean", "m2", "min", "max")
+
     def __init__(self):
         self.count = self.mean = self.m2 = self.min = self.max = None
 
-    def add(self, x: np.ndarray) -> None:
-        x = np.asarray(x, np.float64)
-        finite = np.isfinite(x)
-        n = finite.sum(axis=0).astype(np.float64)
-        safe = np.where(finite, x, 0.0)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            mean = np.where(n > 0, safe.sum(axis=0) / np.maximum(n, 1), 0.0)
-            m2 = np.where(finite, (safe - mean) ** 2, 0.0).sum(axis=0)
-        lo = np.where(finite, x, np.inf).min(axis=0, initial=np.inf)
-        hi = np.where(finite, x, -np.inf).max(axis=0, initial=-np.inf)
+    def add(self, count, mean, m2, lo, hi) -> None:
+        """Merge one chunk's moments (as `_chunk_moments` computes them)."""
+        n, mean, m2 = (np.asarray(x, np.float64) for x in (count, mean, m2))
+        lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
         if self.count is None:
             self.count, self.mean, self.m2, self.min, self.max = n, mean, m2, lo, hi
             return
@@ -216,9 +213,9 @@ def _draw(targets, key, index, y0, params, dtype):
 
 def _chunk_core(dyn, sharded, *, static, config, axis_name):
     """Simulate and observe one chunk (or one device's shard of it)."""
-    scene, base_y0, base_params, key, t0, t1, ts, rtol, atol, dt0, dists = eqx.combine(
+    scene, base_y0, base_params, key, t0, t1, ts, rtol, atol, dt0, dists, n_total = eqx.combine(
         dyn, static)
-    (targets, solver, mode, max_steps, observe, events) = config
+    (targets, solver, mode, max_steps, observe, events, compact_rows) = config
     targets = tuple(t + (d,) for t, d in zip(targets, dists))
     indices, batch_y0, batch_params = sharded
     dtype = t0.dtype
@@ -274,7 +271,8 @@ def _chunk_core(dyn, sharded, *, static, config, axis_name):
 
         r = batch_solve(field, conditions, names, flags, params, y0, t0, t1, ts,
                         solver=solver, rtol=rtol, atol=atol, max_steps=max_steps,
-                        lockstep=mode == "lockstep", dt0=dt0, axis_name=axis_name)
+                        lockstep=mode == "lockstep", dt0=dt0, axis_name=axis_name,
+                        compact_rows=compact_rows)
         status, reason, steps = r.status, r.reason, r.steps
 
         def build(p, y_start, t_final, y_final, ys, event, status, steps, rejected):
@@ -298,7 +296,28 @@ def _chunk_core(dyn, sharded, *, static, config, axis_name):
     if not isinstance(observed, Mapping):
         raise ParameterError(f"observe returned {type(observed).__name__}: expected a dict of "
                              "arrays")
-    return {"values": dict(observed), "status": status, "reason": reason, "steps": steps}
+    # Per-chunk moments of every observed value over the successful trajectories (the padding
+    # of a last, partial chunk excluded), merged on the host chunk by chunk.
+    ok = ((status == _OK[0]) | (status == _OK[1])) & (indices < n_total)
+    # All values as columns of one array: five reductions in all, whatever the outputs.
+    columns = [jnp.asarray(observed[k]).astype(dtype).reshape(m, -1) for k in sorted(observed)]
+    moments = _chunk_moments(jnp.concatenate(columns, axis=1), ok)
+    return {"values": dict(observed), "moments": moments, "status": status, "reason": reason,
+            "steps": steps}
+
+
+def _chunk_moments(v, ok):
+    """Count, mean, sum of squared deviations, min and max of each column of `v` over the rows
+    where `ok` and the value is finite."""
+    use = ok[:, None] & jnp.isfinite(v)
+    count = jnp.sum(use, axis=0).astype(v.dtype)
+    mean = jnp.sum(jnp.where(use, v, 0), axis=0) / jnp.maximum(count, 1)
+    m2 = jnp.sum(jnp.where(use, (v - mean) ** 2, 0), axis=0)
+    lo = jnp.min(jnp.where(use, v, jnp.inf), axis=0)
+    hi = jnp.max(jnp.where(use, v, -jnp.inf), axis=0)
+    # A leading axis of one: sharded chunks stack their shards' moments along it.
+    return {k: x[None] for k, x in
+            {"count": count, "mean": mean, "m2": m2, "min": lo, "max": hi}.items()}
 
 
 _COMPILED: dict = {}
@@ -488,16 +507,18 @@ def ensemble(
     base_params = {k: jnp.asarray(v) for k, v in p_single.items()}
     rtol_a, atol_a = jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype)
     dists = tuple(t[-1] for t in targets)  # their values are arguments too
-    tree = (scene, base_y0, base_params, key, t0, t1, ts, rtol_a, atol_a, dt0, dists)
+    tree = (scene, base_y0, base_params, key, t0, t1, ts, rtol_a, atol_a, dt0, dists,
+            jnp.asarray(n, jnp.uint32))
     dyn, static = eqx.partition(tree, eqx.is_array)
     config = (tuple(t[:-1] for t in targets), solver, mode, int(max_steps), observe,
-              bool(events))
+              bool(events), _batch_solve.COMPACT_ROWS)
 
     n_chunks = math.ceil(n / chunk_size)
     process, processes = jax.process_index(), jax.process_count()
     store = None
     if out is not None:
         description = {
+            "format": 2,  # chunk files hold per-chunk moments
             "scene": repr(jax.tree.map(lambda x: np.asarray(x).tolist()
                                        if eqx.is_array(x) else x, scene)),
             "y0": {k: np.asarray(v).tolist() for k, v in y_single.items()},
@@ -524,14 +545,15 @@ def ensemble(
         from tqdm.auto import tqdm
 
         bar = tqdm(total=n, unit="traj", desc="ensemble")
-    stats: dict[str, _Moments] = {}
+    moments = _Moments()
     kept: dict[str, list] = {}
     status_parts, steps_parts = [], []
     reasons: dict[int, str] = {}
-    compile_s, run_times, resumed = 0.0, [], 0
+    compile_s, run_s, computed, resumed = 0.0, 0.0, 0, 0
     msgs = scene.violations(ex_y0)[1]
 
-    def compute(c):
+    def launch(c):
+        """Start chunk `c` (JAX dispatches asynchronously); returns its unfinished results."""
         nonlocal compile_s
         lo, hi = c * chunk_size, min((c + 1) * chunk_size, n)
         idx = np.arange(lo, lo + chunk_size)
@@ -543,29 +565,46 @@ def ensemble(
         compile_s += seconds
         if sharding is not None:
             sharded = jax.device_put(sharded, sharding)
-        start = time.perf_counter()
-        result = jax.block_until_ready(fn(dyn, sharded))
-        run_times.append(time.perf_counter() - start)
-        m = hi - lo
-        arrays = {f"values/{k}": np.asarray(v)[:m] for k, v in result["values"].items()}
+        return c, hi - lo, fn(dyn, sharded)
+
+    def finish(started):
+        """Bring a started chunk's results to the host: what is kept (all values when the
+        chunks go to files), the chunk's moments, status, reasons and steps."""
+        c, m, result = started
+        arrays = {f"values/{k}": np.asarray(v)[:m] for k, v in result["values"].items()
+                  if store is not None or keep_names is None or k in keep_names}
+        arrays.update({f"moments/{f}": np.asarray(v) for f, v in result["moments"].items()})
+        arrays.update({f"shape/{k}": np.asarray(v.shape[1:], np.int64)
+                       for k, v in result["values"].items()})
         arrays.update({k: np.asarray(result[k])[:m] for k in ("status", "reason", "steps")})
+        if store is not None:
+            store.write(c, arrays)
         return arrays
 
     mine = [c for c in range(n_chunks) if c % processes == process]
     results: dict[int, dict] = {}
+    todo = []
     for c in range(n_chunks):
         arrays = store.read(c) if store is not None else None
-        if arrays is None and c in mine:
-            arrays = compute(c)
-            if store is not None:
-                store.write(c, arrays)
-        elif arrays is not None:
+        if arrays is not None:
             resumed += 1
-        if arrays is None:  # another process's chunk: merged below, once it is written
-            continue
-        results[c] = arrays
-        if bar is not None:
-            bar.update(min((c + 1) * chunk_size, n) - c * chunk_size)
+            results[c] = arrays
+        elif c in mine:
+            todo.append(c)
+    if bar is not None:
+        bar.update(sum(min((c + 1) * chunk_size, n) - c * chunk_size for c in results))
+    # One chunk runs while the host finishes the one before it. The run time excludes the
+    # compilation, which happens (once) inside the first launch.
+    started, clock = None, time.perf_counter()
+    for c in todo + [None]:
+        nxt = launch(c) if c is not None else None
+        if started is not None:
+            results[started[0]] = finish(started)
+            computed += started[1]
+            if bar is not None:
+                bar.update(started[1])
+        started = nxt
+    run_s = max(time.perf_counter() - clock - compile_s, 0.0) if todo else 0.0
     if bar is not None:
         bar.close()
     if len(results) < n_chunks:
@@ -574,25 +613,30 @@ def ensemble(
     for c in range(n_chunks):  # merged in chunk order, however they were computed
         arrays = results[c]
         status = arrays["status"]
-        ok = np.isin(status, _OK)
         status_parts.append(status)
         steps_parts.append(arrays["steps"])
         lo = c * chunk_size
         for i in np.flatnonzero(status == STATUS.index("invalid_input")):
             reasons[lo + int(i)] = msgs[int(arrays["reason"][i])]
+        parts = [arrays[f"moments/{f}"] for f in _Moments.FIELDS]
+        for shard in range(parts[0].shape[0]):  # one row of moments per shard
+            moments.add(*(x[shard] for x in parts))
         for k, v in arrays.items():
-            if not k.startswith("values/"):
-                continue
             name = k[len("values/"):]
-            stats.setdefault(name, _Moments()).add(v[ok].astype(np.float64))
-            if keep_names is None or name in keep_names:
+            if k.startswith("values/") and (keep_names is None or name in keep_names):
                 kept.setdefault(name, []).append(v)
     values = {k: np.concatenate(v) for k, v in kept.items()}
     status = np.concatenate(status_parts).astype(np.int8)
     ok = np.isin(status, _OK)
-    statistics = {}
-    for name, mom in stats.items():
-        s = mom.result()
+    # The moments' columns are the observed values in the order of their names.
+    layout = sorted((k[len("shape/"):], tuple(int(d) for d in v))
+                    for k, v in results[0].items() if k.startswith("shape/"))
+    columns = moments.result()
+    statistics, col = {}, 0
+    for name, shape in layout:
+        size = int(np.prod(shape))
+        s = {f: x[col: col + size].reshape(shape) for f, x in columns.items()}
+        col += size
         if name in values:
             v = values[name][ok].astype(np.float64)
             with np.errstate(invalid="ignore"):
@@ -600,10 +644,8 @@ def ensemble(
                     if v.shape[0] else np.full((len(_QUANTILES),) + v.shape[1:], np.nan)
             s["quantiles"] = {f"{int(p * 100)}%": q[i] for i, p in enumerate(_QUANTILES)}
         statistics[name] = s
-    run_s = float(sum(run_times))
-    computed = len(run_times) * chunk_size
     timing = {"compile_s": round(compile_s, 4), "run_s": round(run_s, 4),
-              "trajectories_per_s": (min(computed, n) / run_s) if run_s > 0 else None}
+              "trajectories_per_s": (computed / run_s) if run_s > 0 else None}
     return Ensemble(
         n=n, status=status, values=values, statistics=statistics,
         steps=np.concatenate(steps_parts), reasons=reasons, mode=mode, chunk_size=chunk_size,

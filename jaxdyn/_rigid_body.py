@@ -133,17 +133,23 @@ class RigidBody(AbstractBody):
         if self.is_principal:
             # Written component by component: batched over many trajectories (ensembles), each
             # component is then one contiguous row and XLA fuses a whole stage into one pass.
+            # dw_i/dt = (I_j - I_k)/I_i w_j w_k + (h_j w_k - h_k w_j + tau_i - dh_i/dt)/I_i for
+            # (i, j, k) cyclic, h the internal momentum: the coefficients are per body, not per
+            # step, and an axisymmetric body's I_j - I_k is exactly zero.
             w = [omega[i] for i in range(3)]
-            h = [self.inertia[i] * w[i] for i in range(3)]
+            inertia = self.inertia
+            inv = [1 / inertia[i] for i in range(3)]
+            cyc = ((0, 1, 2), (1, 2, 0), (2, 0, 1))
+            rhs = [(inertia[j] - inertia[k]) * inv[i] * (w[j] * w[k]) for i, j, k in cyc]
+            extra = [None, None, None]
             if h_internal is not None:
-                h = [h[i] + h_internal[i] for i in range(3)]
-            rhs = [h[1] * w[2] - h[2] * w[1], h[2] * w[0] - h[0] * w[2],
-                   h[0] * w[1] - h[1] * w[0]]
+                extra = [h_internal[j] * w[k] - h_internal[k] * w[j] for _, j, k in cyc]
             if torque is not None:
-                rhs = [rhs[i] + torque[i] for i in range(3)]
+                extra = [torque[i] if e is None else e + torque[i] for i, e in enumerate(extra)]
             if h_rate is not None:
-                rhs = [rhs[i] - h_rate[i] for i in range(3)]
-            dy = {"omega": jnp.stack([rhs[i] / self.inertia[i] for i in range(3)])}
+                extra = [-h_rate[i] if e is None else e - h_rate[i] for i, e in enumerate(extra)]
+            rhs = [r if e is None else r + e * inv[i] for i, (r, e) in enumerate(zip(rhs, extra))]
+            dy = {"omega": jnp.stack(rhs)}
         else:
             h = self.body_momentum(omega)
             if h_internal is not None:

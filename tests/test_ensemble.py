@@ -269,3 +269,36 @@ def test_montecarlo_command(tmp_path):
     bad = subprocess.run(_cli("--vary", "theta_dot=gauss(0, 1)"), capture_output=True, text=True)
     assert bad.returncode == 2
     assert bad.stderr.count("\n") == 1 and "gauss" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_compacting_the_batch_changes_no_trajectory():
+    """Per-trajectory stepping moves the running trajectories to smaller batches as others
+    finish: states, saved values, event times, statuses and step counts stay bit for bit."""
+    import diffrax as dfx
+
+    from jaxdyn._batch_solve import batch_solve
+
+    def field(p, t, y):  # a pendulum-like rod, stopped when it lies flat
+        s = jnp.sin(y["theta"])
+        return {"theta": y["rate"], "rate": p["k"] * s / (1 + 3 * s**2)}
+
+    def conditions(p, t, y):
+        return jnp.stack([jnp.pi / 2 - jnp.abs(y["theta"])])
+
+    n = 40
+    rng = np.random.default_rng(5)
+    y0 = {"theta": jnp.asarray(rng.uniform(0.01, 0.3, n)), "rate": jnp.zeros(n)}
+    params = {"k": jnp.asarray(rng.uniform(5.0, 40.0, n))}
+    flags = jnp.zeros((n, 1), bool).at[3, 0].set(True)  # one invalid input
+    ts = jnp.linspace(0.0, 1.5, 7)
+
+    def run(compact):
+        return jax.jit(lambda y0, params: batch_solve(
+            field, conditions, ("flat",), flags, params, y0, 0.0, 3.0, ts,
+            solver=dfx.Tsit5(), rtol=1e-9, atol=1e-11, max_steps=60, lockstep=False,
+            compact_rows=compact))(y0, params)
+
+    whole, compacted = run(None), run(4)
+    assert set(np.asarray(whole.status).tolist()) >= {1, 2, 5}  # events, max_steps, invalid
+    for a, b in zip(jax.tree.leaves(whole), jax.tree.leaves(compacted)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

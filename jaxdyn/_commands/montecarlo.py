@@ -23,10 +23,32 @@ def add_arguments(p) -> None:
     p.add_argument("--out", metavar="DIR",
                    help="write each finished chunk here; run again to resume")
     p.add_argument("--progress", action="store_true", help="show a progress bar")
+    p.add_argument("--devices", type=int, default=None,
+                   help="CPU devices to shard each chunk across (default: one per core)")
+
+
+def cpu_devices(count: int | None) -> None:
+    """Expose `count` JAX CPU devices (default: one per core), so that a chunk is sharded
+    across every core. Left alone where XLA_FLAGS already chooses, or where JAX has started."""
+    import os
+
+    import jax
+
+    if count is not None and count <= 0:
+        from .._validation import ParameterError
+
+        raise ParameterError(f"--devices={count}: must be a positive integer")
+    if "xla_force_host_platform_device_count" in os.environ.get("XLA_FLAGS", ""):
+        return
+    try:
+        jax.config.update("jax_num_cpu_devices", count or os.cpu_count() or 1)
+    except RuntimeError:  # backends already initialised (main() called in-process)
+        pass
 
 
 def run(args) -> int:
     enable_x64()
+    cpu_devices(args.devices)
     import numpy as np
 
     from .._distributions import parse_vary, split_name

@@ -1,0 +1,63 @@
+"""`sincos` (the vectorised sine and cosine of the rod's vector field) against NumPy, and the
+batched engine's vectorised step-size root against `x ** (-1 / p)`."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxdyn._batch_solve import _inv_root
+from jaxdyn._fastmath import sincos
+
+
+def _ulps(got, ref):
+    """Largest error in units in the last place of `ref`'s type."""
+    tiny = np.finfo(ref.dtype).tiny
+    ulp = np.spacing(np.maximum(np.abs(ref), tiny)).astype(np.float64)
+    return np.max(np.abs(np.asarray(got, np.float64) - ref.astype(np.float64)) / ulp)
+
+
+@pytest.mark.parametrize("limit", [1.0, 10.0, 1e3, 1.6e6])
+def test_sincos_float64_within_two_ulps(limit):
+    x = np.random.default_rng(0).uniform(-limit, limit, 100_000)
+    s, c = sincos(jnp.asarray(x))
+    assert _ulps(s, np.sin(x)) <= 2 and _ulps(c, np.cos(x)) <= 2
+
+
+def test_sincos_near_multiples_of_half_pi_and_special_values():
+    k = np.arange(-3000, 3000) * (np.pi / 2)
+    x = np.concatenate([k, np.nextafter(k, np.inf), np.nextafter(k, -np.inf)])
+    s, c = sincos(jnp.asarray(x))
+    # Absolute error at the zeros, where relative error is meaningless.
+    assert np.max(np.abs(np.asarray(s) - np.sin(x))) < 1e-30
+    assert np.max(np.abs(np.asarray(c) - np.cos(x))) < 1e-30
+    s, c = sincos(jnp.array([0.0, 1e-300, np.inf, -np.inf, np.nan]))
+    np.testing.assert_array_equal(np.asarray(s[:2]), [0.0, 1e-300])
+    np.testing.assert_array_equal(np.asarray(c[:2]), [1.0, 1.0])
+    assert np.all(np.isnan(np.asarray(s[2:]))) and np.all(np.isnan(np.asarray(c[2:])))
+
+
+def test_sincos_float32_and_derivatives():
+    x = np.random.default_rng(1).uniform(-100, 100, 100_000).astype(np.float32)
+    s, c = sincos(jnp.asarray(x))
+    assert s.dtype == jnp.float32
+    assert _ulps(s, np.sin(x.astype(np.float64)).astype(np.float32)) <= 2
+    assert _ulps(c, np.cos(x.astype(np.float64)).astype(np.float32)) <= 2
+    # First and second derivatives, against the closed forms.
+    x0 = 0.7
+    assert np.isclose(jax.grad(lambda x: sincos(x)[0])(x0), np.cos(x0), rtol=1e-15)
+    assert np.isclose(jax.grad(lambda x: sincos(x)[1])(x0), -np.sin(x0), rtol=1e-15)
+    assert np.isclose(jax.grad(jax.grad(lambda x: sincos(x)[0]))(x0), -np.sin(x0), rtol=1e-15)
+    jac = jax.jacfwd(lambda x: sincos(x)[1])(jnp.array([0.1, 2.0]))
+    np.testing.assert_allclose(np.diag(jac), -np.sin([0.1, 2.0]), rtol=1e-15)
+
+
+@pytest.mark.parametrize("p", [2, 3, 5, 8])
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+def test_inverse_root_of_the_step_size_controller(p, dtype):
+    x = jnp.logspace(-12, 12, 20001, dtype=dtype)
+    got = _inv_root(x, p)
+    want = np.asarray(x, np.float64) ** (-1.0 / p)
+    rel = np.max(np.abs(np.asarray(got, np.float64) / want - 1))
+    # A step-size factor needs a few digits (it is multiplied by a safety factor of 0.9)
+    assert rel < 1e-4
