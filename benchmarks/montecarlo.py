@@ -33,16 +33,24 @@ Run: `python benchmarks/montecarlo.py [--quick] [--n N]`. Prints one JSON object
 
 import argparse
 import json
+import os
 import platform
 import resource
 import statistics
 import subprocess
 import sys
 import time
+from functools import partial
 
 import jax
 
 jax.config.update("jax_enable_x64", True)
+# Every core as a JAX CPU device (what `jaxdyn montecarlo` does, and the README recommends for
+# Monte Carlo on a CPU): jd.ensemble and the lean kernel shard across them; plain vmap and SciPy
+# run as users write them. `--devices 1` for one device.
+_devices = next((int(a.split("=")[1]) for a in sys.argv if a.startswith("--devices=")),
+                os.cpu_count() or 1)
+jax.config.update("jax_num_cpu_devices", _devices)
 
 import diffrax as dfx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
@@ -52,6 +60,7 @@ from diffrax._solver.tsit5 import _tsit5_tableau as TSIT5  # noqa: E402
 from scipy.integrate import solve_ivp  # noqa: E402
 
 import jaxdyn as jd  # noqa: E402
+from jaxdyn._fastmath import sincos  # noqa: E402
 
 RTOL, ATOL = 1e-8, 1e-10
 INERTIA = (1.0, 2.0, 3.0)
@@ -107,14 +116,14 @@ def lean_free(w0, steps):
     return jnp.stack(y, axis=-1)
 
 
-def rod_rows(y):
+def rod_rows(y, trig=None):
     theta, rate = y
-    s, c = jnp.sin(theta), jnp.cos(theta)
+    s, c = (jnp.sin(theta), jnp.cos(theta)) if trig is None else trig(theta)
     acc = (6 * G / LENGTH * s - 3 * s * c * rate**2) / (1 + 3 * s**2)
     return (rate, acc)
 
 
-def lean_rod(y0, h):
+def lean_rod(y0, h, trig=None):
     """Fixed steps until every rod is flat; fall time from the cubic Hermite interpolant."""
     theta, rate = y0[:, 0], y0[:, 1]
     n = theta.shape[0]
@@ -125,8 +134,8 @@ def lean_rod(y0, h):
 
     def body(c):
         t, y, f, done, out = c
-        y1, _ = rk_step(rod_rows, y, h)
-        f1 = rod_rows(y1)
+        y1, _ = rk_step(lambda y: rod_rows(y, trig), y, h)
+        f1 = rod_rows(y1, trig)
         hit = ~done & (jnp.abs(y1[0]) >= half)
         # Hermite cubic of theta over the step, root of |theta| = pi/2 by Newton from the secant.
         th0, th1, d0, d1 = y[0], y1[0], f[0] * h, f1[0] * h
@@ -143,7 +152,7 @@ def lean_rod(y0, h):
         return t + h, y1, f1, done | hit, out
 
     y = (theta, rate)
-    c = (jnp.zeros(()), y, rod_rows(y), jnp.zeros(n, bool), jnp.full(n, jnp.inf))
+    c = (jnp.zeros(()), y, rod_rows(y, trig), jnp.zeros(n, bool), jnp.full(n, jnp.inf))
     return jax.lax.while_loop(cond, body, c)[4]
 
 
@@ -232,7 +241,7 @@ def lean_search(run, ref, target, first):
 # -- the two problems ----------------------------------------------------------------------------
 
 def compare(out, ens, observed, ref, inputs, plain_fn, scipy_fn, lean_fn, first_steps, *,
-            chunk, repeats, scipy_n):
+            chunk, repeats, scipy_n, lean_trigs=(None,)):
     """Every method on one problem: `ens(mode)` runs jaxdyn, `inputs` (n, state) the initial
     states of the others, `lean_fn(inputs, steps)` the fixed-step kernel."""
     n = len(inputs)
@@ -263,16 +272,40 @@ def compare(out, ens, observed, ref, inputs, plain_fn, scipy_fn, lean_fn, first_
         return np.asarray(runs[steps](x[:CHECK]))
     steps, e = lean_search(lean, ref, target, first_steps)
 
-    def chunked(y):
-        r = jax.lax.map(lambda c: lean_fn(c, steps), y.reshape((-1, chunk) + y.shape[1:]))
-        return r.reshape((-1,) + r.shape[2:])
-    fn, whole = jax.jit(chunked), jax.jit(lambda y: lean_fn(y, steps))
-    m = (n // chunk) * chunk
-    s_chunk, first = timed(lambda: fn(x[:m]), repeats)
-    s_whole, _ = timed(lambda: whole(x), repeats)
-    out["lean_kernel"] = {"steps": steps, "trajectories_per_s": max(m / s_chunk, n / s_whole),
-                          "chunked_per_s": m / s_chunk, "whole_batch_per_s": n / s_whole,
-                          "compile_s": first - s_chunk, "max_error": e[0], "median_error": e[1]}
+    # The limit: the fastest of the whole batch at once, chunks in a loop, and chunks sharded
+    # across the devices, with the C library's sine and cosine and (where there are any) with
+    # jaxdyn's vectorised sincos.
+    devices = jax.devices()
+    k = len(devices)
+    per = max(chunk // k, 1)
+    m = (n // (per * k)) * per * k
+    mesh = jax.sharding.Mesh(np.asarray(devices), ("b",))
+    spec = jax.sharding.PartitionSpec("b")
+
+    def chunked(fn):
+        def run(y):
+            r = jax.lax.map(fn, y.reshape((-1, per) + y.shape[1:]))
+            return r.reshape((-1,) + r.shape[2:])
+        return run
+
+    rows = {}
+    for trig in lean_trigs:
+        fn = partial(lean_fn, steps=steps, trig=trig) if trig is not None else \
+            partial(lean_fn, steps=steps)
+        name = "libm" if trig is None else "sincos"
+        layouts = {"whole_batch": (jax.jit(fn), n),
+                   "chunked": (jax.jit(chunked(fn)), m)}
+        if k > 1:
+            layouts["sharded"] = (jax.jit(jax.shard_map(
+                chunked(fn), mesh=mesh, in_specs=spec, out_specs=spec, check_vma=False)), m)
+        for layout, (f, size) in layouts.items():
+            seconds, first = timed(lambda: f(x[:size]), repeats)
+            rows[f"{layout}_{name}"] = {"trajectories_per_s": size / seconds,
+                                        "compile_s": first - seconds}
+    best = max(rows, key=lambda r: rows[r]["trajectories_per_s"])
+    out["lean_kernel"] = {"steps": steps, "trajectories_per_s":
+                          rows[best]["trajectories_per_s"], "fastest": best,
+                          "variants": rows, "max_error": e[0], "median_error": e[1]}
     return out
 
 
@@ -305,8 +338,8 @@ def rod(n, chunk, repeats, scipy_n, rng):
     out = {"problem": "falling rod to impact (terminating event)", "n": n,
            "lean_steps_are": "steps per unit of simulated time"}
     return compare(out, ens, "t_final", ref, y0, plain_rod, scipy_rod,
-                   lambda y, steps: lean_rod(y, 1.0 / steps), 20,
-                   chunk=chunk, repeats=repeats, scipy_n=scipy_n)
+                   lambda y, steps, trig=None: lean_rod(y, 1.0 / steps, trig), 20,
+                   chunk=chunk, repeats=repeats, scipy_n=scipy_n, lean_trigs=(None, sincos))
 
 
 def ratios(block):
@@ -348,17 +381,19 @@ def memory(chunk):
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--n", type=int, default=100_000)
-    parser.add_argument("--chunk", type=int, default=8192)
+    parser.add_argument("--chunk", type=int, default=16384)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--scipy-n", type=int, default=200)
-    parser.add_argument("--quick", action="store_true", help="n = 16384, one repeat")
+    parser.add_argument("--quick", action="store_true", help="n = 32768, one repeat")
+    parser.add_argument("--devices", type=int, default=_devices,
+                        help="JAX CPU devices (default: one per core); give as --devices=K")
     parser.add_argument("--memory-probe", type=int, default=None, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.memory_probe is not None:
         print(memory_probe(args.memory_probe, args.chunk))
         return
     if args.quick:
-        args.n, args.repeats, args.scipy_n = 16384, 1, 50
+        args.n, args.repeats, args.scipy_n = 32768, 1, 50
     rng = np.random.default_rng(2026)
     start = time.perf_counter()
     free = free_body(args.n, args.chunk, args.repeats, args.scipy_n, rng)
@@ -368,7 +403,8 @@ def main():
     out = {
         "benchmark": "montecarlo",
         "machine": {"platform": platform.platform(), "processor": platform.processor(),
-                    "cpus": jax.device_count(), "device": jax.devices()[0].device_kind,
+                    "cores": os.cpu_count(), "devices": jax.device_count(),
+                    "device": jax.devices()[0].device_kind,
                     "jax": jax.__version__, "jaxdyn": jd.__version__},
         "settings": {"rtol": RTOL, "atol": ATOL, "chunk": args.chunk,
                      "repeats": args.repeats, "check_subset": CHECK},

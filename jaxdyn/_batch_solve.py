@@ -52,7 +52,7 @@ STATUS_HELP = {
 _SAFETY, _FACTOR_MIN, _FACTOR_MAX = 0.9, 0.2, 10.0
 _RUNNING = -1  # the status of a trajectory still being integrated
 
-COMPACT_ROWS = 1024
+COMPACT_ROWS = 2048
 """The default of `batch_solve`'s `compact_rows` in ensembles. Per-trajectory stepping compacts
 the batch: once at most half of it is still running, those
 trajectories move to a batch of half the size, down to this many rows. The loop then costs what
@@ -214,7 +214,6 @@ def batch_solve(
     t1 = jnp.asarray(t1, dtype)
     eps = jnp.finfo(dtype).eps
     interp_cls = solver.interpolation_cls
-    stages = len(tab.a) + 1
     S = 0 if ts is None else ts.shape[0]
     EVENT = STATUS.index("event")
 
@@ -282,27 +281,30 @@ def batch_solve(
 
     saved = None if ts is None else tuple(jnp.full((S, n), jnp.inf, dtype) for _ in y0)
     saved, nxt = save(saved, jnp.zeros((n,), jnp.int32), ~invalid, t0, lambda s: y0)
-    cross = None
-    if conditions is not None:  # the step in which each trajectory's event fired
-        cross = (tvec, tvec, y0, y0, tuple(jnp.zeros((stages, n), dtype) for _ in y0))
     zeros = jnp.zeros((n,), jnp.int32)
     # Every array in the carry has the batch as its last axis, so that the batch can be
     # compacted by one gather.
     carry = dict(t=tvec, y=y0, fa=f0, dt=dt, status=status, nacc=zeros, nrej=zeros, p=params,
-                 saved=saved, nxt=nxt, cross=cross)
+                 saved=saved, nxt=nxt)
 
     # -- steps ----------------------------------------------------------------------------------
+    def attempt(p, t, y, fa, h):
+        """One Runge-Kutta step of size `h`: the stage derivatives, `y1` and the error."""
+        fs = [fa if tab.fsal else f(p, t, y)]
+        for row, ci in zip(tab.a, tab.c):
+            fs.append(f(p, t + ci * h, _combine(y, h, row, fs)))
+        return fs, _combine(y, h, tab.b, fs), _combine(None, h, tab.e, fs)
+
+    def stacked(fs, h):  # the dense interpolant's stage increments, (stages, m) per row
+        return tuple(h * jnp.stack(k, axis=0) for k in zip(*fs))
+
     def step(c):
         t, y, fa, dt, status, p = c["t"], c["y"], c["fa"], c["dt"], c["status"], c["p"]
         alive = status == _RUNNING
         h = jnp.where(alive, jnp.minimum(dt, t1 - t), 0.0)
         if lockstep:
             h = jnp.where(alive, bmin(jnp.where(alive, h, jnp.inf)), 0.0)
-        fs = [fa if tab.fsal else f(p, t, y)]
-        for row, ci in zip(tab.a, tab.c):
-            fs.append(f(p, t + ci * h, _combine(y, h, row, fs)))
-        y1 = _combine(y, h, tab.b, fs)
-        err = _combine(None, h, tab.e, fs)
+        fs, y1, err = attempt(p, t, y, fa, h)
         norm = _rms(tuple(e / (atol + rtol * jnp.maximum(jnp.abs(a), jnp.abs(b)))
                           for e, a, b in zip(err, y, y1)))
         finite = jnp.isfinite(norm)
@@ -320,16 +322,18 @@ def batch_solve(
             dt_new = jnp.where(alive, bmin(jnp.where(alive, dt_new, jnp.inf)), dt)
         reached = accept & (t + h >= t1)
         t_new = jnp.where(reached, t1, jnp.where(accept, t + h, t))
-        ks = tuple(h * jnp.stack(k, axis=0) for k in zip(*fs))
         hit = jnp.zeros(alive.shape, bool)
-        cross = c["cross"]
         if conditions is not None:
-            hit = accept & (G(p, t_new, y1) <= 0)
-            cross = _where(hit, (t, t_new, y, y1, ks), cross)
+            # A trajectory whose event fires in this step stays at the step's start, with the
+            # step size in `dt`: the step is taken again after the loop to locate the event, so
+            # the loop carries nothing for it.
+            hit = accept & ~reached & (G(p, t_new, y1) <= 0)
+            dt_new = jnp.where(hit, h, dt_new)
+        advance = accept & ~hit
         # Save the states at the save times passed in this step (for a step that ends in an
         # event, after the event has been located).
-        saved, nxt = save(c["saved"], c["nxt"], accept & ~hit, t_new,
-                          lambda s: interpolate(t, t_new, y, y1, ks, jnp.full(t.shape, s)))
+        saved, nxt = save(c["saved"], c["nxt"], advance, t_new, lambda s: interpolate(
+            t, t_new, y, y1, stacked(fs, h), jnp.full(t.shape, s)))
         underflow = alive & ~accept & (dt_new <= 4 * eps * jnp.maximum(jnp.abs(t), 1.0))
         nacc = c["nacc"] + accept.astype(jnp.int32)
         nrej = c["nrej"] + (alive & ~accept).astype(jnp.int32)
@@ -339,9 +343,9 @@ def batch_solve(
             hit, EVENT, jnp.where(out_of_steps, STATUS.index("max_steps_reached"), jnp.where(
                 underflow, jnp.where(finite, STATUS.index("step_size_underflow"),
                                      STATUS.index("non_finite")), status))))
-        return dict(t=t_new, y=_where(accept, y1, y),
-                    fa=_where(accept, fs[-1], fa) if tab.fsal else fa, dt=dt_new,
-                    status=status, nacc=nacc, nrej=nrej, p=p, saved=saved, nxt=nxt, cross=cross)
+        return dict(t=jnp.where(hit, t, t_new), y=_where(advance, y1, y),
+                    fa=_where(advance, fs[-1], fa) if tab.fsal else fa, dt=dt_new,
+                    status=status, nacc=nacc, nrej=nrej, p=p, saved=saved, nxt=nxt)
 
     def running(c):
         return c["status"] == _RUNNING
@@ -365,8 +369,12 @@ def batch_solve(
     # -- events ---------------------------------------------------------------------------------
     event = {}
     if conditions is not None:
-        ta, tb, ya, yb, ks = carry["cross"]
         crossed = (status == EVENT) & ~at_start
+        # The step in which each event fired, taken again from where its trajectory stopped.
+        h = jnp.where(crossed, carry["dt"], 0.0)
+        ta, ya = t, y
+        fs, yb, _ = attempt(p, ta, ya, carry["fa"], h)
+        tb, ks = ta + h, stacked(fs, h)
 
         def g(s):
             return G(p, s, interpolate(ta, tb, ya, yb, ks, s))

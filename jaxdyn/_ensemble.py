@@ -333,7 +333,18 @@ def _compiled_chunk(dyn, static, sharded, config, devices):
            config, tuple(devices))
     if key in _COMPILED:
         return _COMPILED[key], 0.0
-    if len(devices) > 1:
+    shardings = {}
+    if len(devices) > 1 and config[2] == "vmap":
+        # jax.vmap over simulate: XLA partitions the batch itself (diffrax's event root finding
+        # does not trace inside shard_map).
+        mesh = jax.sharding.Mesh(np.asarray(devices), ("batch",))
+        sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
+        body = partial(_chunk_core, static=static, config=config, axis_name=None)
+        whole = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
+        shardings = {"in_shardings": (whole, sharding), "out_shardings": {
+            "values": sharding, "moments": whole, "status": sharding, "reason": sharding,
+            "steps": sharding}}
+    elif len(devices) > 1:
         mesh = jax.sharding.Mesh(np.asarray(devices), ("batch",))
         spec = jax.sharding.PartitionSpec("batch")
         body = jax.shard_map(
@@ -345,7 +356,7 @@ def _compiled_chunk(dyn, static, sharded, config, devices):
         body = partial(_chunk_core, static=static, config=config, axis_name=None)
         sharding = None
     start = time.perf_counter()
-    compiled = jax.jit(body).lower(dyn, sharded).compile()
+    compiled = jax.jit(body, **shardings).lower(dyn, sharded).compile()
     seconds = time.perf_counter() - start
     _COMPILED[key] = (compiled, sharding)
     return _COMPILED[key], seconds
@@ -426,9 +437,12 @@ def ensemble(
       (one step size for the whole batch), or `"vmap"` (`jax.vmap` over `simulate`: any diffrax
       solver, and hybrid bodies such as [`jaxdyn.RoughFloorRod`][], at a fraction of the speed).
       The first two need an explicit Runge-Kutta solver with an error estimate.
-    - `chunk_size`: trajectories per compiled call (default 8192, or `n` if smaller; rounded up
+    - `chunk_size`: trajectories per compiled call (default 16384, or `n` if smaller; rounded up
       to a multiple of the number of devices).
-    - `devices`: devices to shard each chunk across (default: all local devices).
+    - `devices`: devices to shard each chunk across (default: all local devices). JAX gives a
+      CPU one device however many cores it has; `jax.config.update("jax_num_cpu_devices", k)`
+      before the first computation makes `k` (one per core is usually fastest; `jaxdyn
+      montecarlo` does this itself).
     - `out`: a directory for chunk files: each finished chunk is written atomically, and a run
       started again with the same settings resumes where it stopped. Needed when several
       processes share a run (`jax.distributed`): each computes its share of the chunks.
@@ -491,7 +505,7 @@ def ensemble(
     if not devices:
         raise ParameterError("devices: empty list")
     if chunk_size is None:
-        chunk_size = min(8192, n)
+        chunk_size = min(16384, n)
     if not isinstance(chunk_size, int | np.integer) or chunk_size <= 0:
         raise ParameterError(f"chunk_size={chunk_size!r}: must be a positive integer")
     chunk_size = int(math.ceil(int(chunk_size) / len(devices)) * len(devices))
