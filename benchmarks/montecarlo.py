@@ -10,23 +10,22 @@ method), rtol=1e-8, atol=1e-10:
   lies flat (a terminating event); the error of the fall time is measured against the
   quadrature `FallingRod.fall_time`.
 
-Methods, all in this one run:
+Methods, all in this one run, with every core as a JAX CPU device (`jax_num_cpu_devices`, as
+`jaxdyn montecarlo` sets it; `--devices=1` for one):
 
-- jaxdyn: `jd.ensemble` (default mode: per-trajectory adaptive Tsit5 over a batch; chunks of
-  `--chunk` trajectories), and its lock-step mode;
+- jaxdyn: `jd.ensemble` (default mode: per-trajectory adaptive Tsit5 over a batch, sharded
+  across the devices; chunks of `--chunk` trajectories), and its lock-step mode;
 - plain vmap: `jax.jit(jax.vmap(diffrax.diffeqsolve))` with Tsit5 and a PID controller (and a
-  `diffrax.Event` for the rod), as a user would write it;
+  `diffrax.Event` for the rod), as a user would write it (one device);
 - SciPy: a loop over `scipy.integrate.solve_ivp` (RK45 and DOP853; the faster is compared) on
   the first `--scipy-n` trajectories, rate extrapolated;
 - lean kernel, the practical limit: Tsit5's tableau with a fixed step in a `lax.scan` (rod: a
   `while_loop` until every rod is down, the event located on the cubic Hermite interpolant by
   Newton), over a structure-of-arrays state (one row per component), with the smallest number
-  of steps whose largest error over the check subset is no larger than jaxdyn's.
-
-Figures: trajectories per second (median of repeats after compilation; compile time reported
-apart), largest and median error against the exact reference on a check subset, ratios. Peak
-memory: `jd.ensemble` with statistics only (`keep=False`) in a fresh process for n = 1, 4, 16
-chunks; resident-set peak (ru_maxrss) of each.
+  of steps whose largest error over the check subset is no larger than jaxdyn's. It is timed on
+  the whole batch at once, in chunks, and in chunks sharded across the devices, for the rod both
+  with the C library's sine and cosine and with jaxdyn's vectorised `sincos`; the fastest is the
+  limit.
 
 Run: `python benchmarks/montecarlo.py [--quick] [--n N]`. Prints one JSON object.
 """
