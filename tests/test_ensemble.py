@@ -262,6 +262,7 @@ def test_montecarlo_command(tmp_path):
     proc = subprocess.run(_cli(), capture_output=True, text=True, check=True)
     out = json.loads(proc.stdout)
     assert out["n"] == 2000 and out["completed"] == 2000 and out["failed"] == 0
+    assert out["devices"] == (os.cpu_count() or 1)  # one JAX CPU device per core by default
     t = out["statistics"]["t_final"]
     rod = jd.FallingRod()
     # Fall times between those of the extreme angles of the uniform draw.
@@ -269,6 +270,8 @@ def test_montecarlo_command(tmp_path):
     bad = subprocess.run(_cli("--vary", "theta_dot=gauss(0, 1)"), capture_output=True, text=True)
     assert bad.returncode == 2
     assert bad.stderr.count("\n") == 1 and "gauss" in bad.stderr and "Traceback" not in bad.stderr
+    bad = subprocess.run(_cli("--devices", "0"), capture_output=True, text=True)
+    assert bad.returncode == 2 and "--devices=0" in bad.stderr and "Traceback" not in bad.stderr
 
 
 def test_compacting_the_batch_changes_no_trajectory():
