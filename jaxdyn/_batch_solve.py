@@ -352,10 +352,13 @@ def batch_solve(
 
     def advance(c, m):
         """Step until every trajectory of this (sub-)batch of `m` rows has finished."""
-        if lockstep or compact_rows is None or m < 2 * max(compact_rows, 1):
+        if lockstep:  # one step size for every shard: they stop together
             return jax.lax.while_loop(lambda c: bany(running(c)), step, c)
-        # Per-trajectory steps need nothing from other trajectories (nor other shards), so the
-        # running ones can move to a smaller batch.
+        # Per-trajectory steps need nothing from other trajectories (nor other shards): each
+        # shard stops when its own trajectories are done, and the running ones can move to a
+        # smaller batch.
+        if compact_rows is None or m < 2 * max(compact_rows, 1):
+            return jax.lax.while_loop(lambda c: jnp.any(running(c)), step, c)
         half = m // 2
         c = jax.lax.while_loop(lambda c: jnp.sum(running(c)) > half, step, c)
         order = jnp.argsort(~running(c), stable=True)[:half]  # the running rows first

@@ -333,28 +333,23 @@ def _compiled_chunk(dyn, static, sharded, config, devices):
            config, tuple(devices))
     if key in _COMPILED:
         return _COMPILED[key], 0.0
-    shardings = {}
-    if len(devices) > 1 and config[2] == "vmap":
-        # jax.vmap over simulate: XLA partitions the batch itself (diffrax's event root finding
-        # does not trace inside shard_map).
+    body = partial(_chunk_core, static=static, config=config, axis_name=None)
+    sharding, shardings = None, {}
+    if len(devices) > 1:
         mesh = jax.sharding.Mesh(np.asarray(devices), ("batch",))
-        sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec("batch"))
-        body = partial(_chunk_core, static=static, config=config, axis_name=None)
-        whole = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec())
-        shardings = {"in_shardings": (whole, sharding), "out_shardings": {
-            "values": sharding, "moments": whole, "status": sharding, "reason": sharding,
-            "steps": sharding}}
-    elif len(devices) > 1:
-        mesh = jax.sharding.Mesh(np.asarray(devices), ("batch",))
-        spec = jax.sharding.PartitionSpec("batch")
-        body = jax.shard_map(
-            partial(_chunk_core, static=static, config=config, axis_name="batch"),
-            mesh=mesh, in_specs=(jax.sharding.PartitionSpec(), spec), out_specs=spec,
-            check_vma=False)
+        spec, whole = jax.sharding.PartitionSpec("batch"), jax.sharding.PartitionSpec()
         sharding = jax.sharding.NamedSharding(mesh, spec)
-    else:
-        body = partial(_chunk_core, static=static, config=config, axis_name=None)
-        sharding = None
+        if config[2] == "vmap":
+            # jax.vmap over simulate: XLA partitions the batch itself (diffrax's event root
+            # finding does not trace inside shard_map).
+            replicated = jax.sharding.NamedSharding(mesh, whole)
+            shardings = {"in_shardings": (replicated, sharding), "out_shardings": {
+                "values": sharding, "moments": replicated, "status": sharding,
+                "reason": sharding, "steps": sharding}}
+        else:
+            body = jax.shard_map(
+                partial(_chunk_core, static=static, config=config, axis_name="batch"),
+                mesh=mesh, in_specs=(whole, spec), out_specs=spec, check_vma=False)
     start = time.perf_counter()
     compiled = jax.jit(body, **shardings).lower(dyn, sharded).compile()
     seconds = time.perf_counter() - start
@@ -563,7 +558,7 @@ def ensemble(
     kept: dict[str, list] = {}
     status_parts, steps_parts = [], []
     reasons: dict[int, str] = {}
-    compile_s, run_s, computed, resumed = 0.0, 0.0, 0, 0
+    compile_s, computed, resumed = 0.0, 0, 0
     msgs = scene.violations(ex_y0)[1]
 
     def launch(c):

@@ -82,7 +82,21 @@ def _element_names(name: str, shape: tuple[int, ...]) -> tuple[str, ...]:
     return tuple(f"{name}[{i}]" for i in range(int(np.prod(shape))))
 
 
-class Unconstrained(AbstractParameterisation):
+class _Elementwise(AbstractParameterisation):
+    """A parameterisation acting element by element on a value of any shape, with fields
+    `spread` and `shape`."""
+
+    def bind(self, value):
+        return type(self)(self.spread, tuple(jnp.shape(value)))
+
+    def size(self):
+        return int(np.prod(self.shape))
+
+    def components(self, name):
+        return _element_names(name, self.shape)
+
+
+class Unconstrained(_Elementwise):
     """Any real value (the identity map), for example an initial state.
 
     **Arguments:**
@@ -93,15 +107,6 @@ class Unconstrained(AbstractParameterisation):
 
     spread: float = 0.0
     shape: tuple[int, ...] | None = eqx.field(static=True, default=None)
-
-    def bind(self, value):
-        return Unconstrained(self.spread, tuple(jnp.shape(value)))
-
-    def size(self):
-        return int(np.prod(self.shape))
-
-    def components(self, name):
-        return _element_names(name, self.shape)
 
     def to_unconstrained(self, value):
         return jnp.ravel(jnp.asarray(value))
@@ -115,7 +120,7 @@ class Unconstrained(AbstractParameterisation):
         return u + self.spread * jax.random.normal(key, u.shape, u.dtype)
 
 
-class Positive(AbstractParameterisation):
+class Positive(_Elementwise):
     """A positive value, `value = exp(u)` (elementwise).
 
     Fitting the logarithm also makes the steps of an optimiser relative, so that lengths of
@@ -129,15 +134,6 @@ class Positive(AbstractParameterisation):
 
     spread: float = 0.5
     shape: tuple[int, ...] | None = eqx.field(static=True, default=None)
-
-    def bind(self, value):
-        return Positive(self.spread, tuple(jnp.shape(value)))
-
-    def size(self):
-        return int(np.prod(self.shape))
-
-    def components(self, name):
-        return _element_names(name, self.shape)
 
     def to_unconstrained(self, value):
         return jnp.log(jnp.ravel(jnp.asarray(value)))
