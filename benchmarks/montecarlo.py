@@ -24,8 +24,9 @@ Methods, all in this one run, with every core as a JAX CPU device (`jax_num_cpu_
   Newton), over a structure-of-arrays state (one row per component), with the smallest number
   of steps whose largest error over the check subset is no larger than jaxdyn's. It is timed on
   the whole batch at once, in chunks, and in chunks sharded across the devices, for the rod both
-  with the C library's sine and cosine and with jaxdyn's vectorised `sincos`; the fastest is the
-  limit.
+  with the C library's sine and cosine and with jaxdyn's vectorised `sincos`, each compiled
+  with XLA's default options and with those `jd.ensemble` compiles its chunks with (512-bit
+  vectors on a CPU); the fastest is the limit.
 
 Run: `python benchmarks/montecarlo.py [--quick] [--n N]`. Prints one JSON object.
 """
@@ -59,6 +60,7 @@ from diffrax._solver.tsit5 import _tsit5_tableau as TSIT5  # noqa: E402
 from scipy.integrate import solve_ivp  # noqa: E402
 
 import jaxdyn as jd  # noqa: E402
+from jaxdyn._ensemble import CPU_COMPILER_OPTIONS  # noqa: E402
 from jaxdyn._fastmath import sincos  # noqa: E402
 
 RTOL, ATOL = 1e-8, 1e-10
@@ -292,15 +294,19 @@ def compare(out, ens, observed, ref, inputs, plain_fn, scipy_fn, lean_fn, first_
         fn = partial(lean_fn, steps=steps, trig=trig) if trig is not None else \
             partial(lean_fn, steps=steps)
         name = "libm" if trig is None else "sincos"
-        layouts = {"whole_batch": (jax.jit(fn), n),
-                   "chunked": (jax.jit(chunked(fn)), m)}
+        layouts = {"whole_batch": (fn, n), "chunked": (chunked(fn), m)}
         if k > 1:
-            layouts["sharded"] = (jax.jit(jax.shard_map(
-                chunked(fn), mesh=mesh, in_specs=spec, out_specs=spec, check_vma=False)), m)
+            layouts["sharded"] = (jax.shard_map(
+                chunked(fn), mesh=mesh, in_specs=spec, out_specs=spec, check_vma=False), m)
         for layout, (f, size) in layouts.items():
-            seconds, first = timed(lambda: f(x[:size]), repeats)
-            rows[f"{layout}_{name}"] = {"trajectories_per_s": size / seconds,
-                                        "compile_s": first - seconds}
+            # XLA's default, and the options jd.ensemble compiles its chunks with.
+            for tag, options in (("", None), ("_vec512", CPU_COMPILER_OPTIONS)):
+                start = time.perf_counter()
+                c = jax.jit(f).lower(x[:size]).compile(options)
+                compile_s = time.perf_counter() - start
+                seconds, _ = timed(lambda: c(x[:size]), repeats)
+                rows[f"{layout}_{name}{tag}"] = {"trajectories_per_s": size / seconds,
+                                                 "compile_s": compile_s}
     best = max(rows, key=lambda r: rows[r]["trajectories_per_s"])
     out["lean_kernel"] = {"steps": steps, "trajectories_per_s":
                           rows[best]["trajectories_per_s"], "fastest": best,
