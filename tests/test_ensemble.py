@@ -97,7 +97,7 @@ def test_rod_fall_times_match_quadrature():
     assert res.completed == 24
     assert res.status_counts() == {"event": 24}
     theta = res.values["theta"]
-    assert np.allclose(np.abs(theta), np.pi / 2, atol=1e-10)  # every rod lies flat
+    assert np.allclose(np.abs(theta), np.pi / 2, atol=1e-12)  # every rod lies flat (event to ulps)
     # Independent route: the initial values are recovered from the energy integral.
     rod = ROD.body
     lo = jax.vmap(lambda i: jax.random.fold_in(jax.random.key(2), i))(jnp.arange(24))
