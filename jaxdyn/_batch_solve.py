@@ -393,7 +393,7 @@ def batch_solve(
             return wide & (gb != 0)
 
         def illinois(c):
-            a, b, ga, gb, side, i = c
+            a, b, ga, gb, side, go, i = c  # go: the rows not settled yet
             denom = jnp.where(gb != ga, gb - ga, 1.0)
             x = jnp.where(gb != ga, b - gb * (b - a) / denom, 0.5 * (a + b))
             x = jnp.clip(x, jnp.minimum(a, b), jnp.maximum(a, b))
@@ -406,16 +406,17 @@ def batch_solve(
             side_new = jnp.where(left, -1, 1).astype(jnp.int32)
             # A settled row stays as it is: each row's result is independent of the others
             # (and so of how a batch is sharded or compacted).
-            go = unsettled(a, b, gb)
-            return (jnp.where(go, a_new, a), jnp.where(go, b_new, b), jnp.where(go, ga_new, ga),
-                    jnp.where(go, gb_new, gb), jnp.where(go, side_new, side), i + 1)
+            a, b = jnp.where(go, a_new, a), jnp.where(go, b_new, b)
+            ga, gb = jnp.where(go, ga_new, ga), jnp.where(go, gb_new, gb)
+            side = jnp.where(go, side_new, side)
+            return a, b, ga, gb, side, unsettled(a, b, gb), i + 1
 
         # Until every bracket has settled: Illinois converges superlinearly, in about ten
         # iterations; at most 60 in float64 (30 in float32).
         iters = 60 if dtype == jnp.float64 else 30
-        a, b, _, _, _, _ = jax.lax.while_loop(
-            lambda c: (c[5] < iters) & jnp.any(unsettled(c[0], c[1], c[3])), illinois,
-            (ta, tb, ga, gb, jnp.zeros((n,), jnp.int32), 0))
+        a, b, _, _, _, _, _ = jax.lax.while_loop(
+            lambda c: (c[6] < iters) & jnp.any(c[5]), illinois,
+            (ta, tb, ga, gb, jnp.zeros((n,), jnp.int32), unsettled(ta, tb, gb), 0))
         t_event = jnp.where(gb <= 0, b, tb)  # b: the bracket end where the events have fired
         y_event = interpolate(ta, tb, ya, yb, ks, t_event)
         saved, nxt = save(saved, nxt, crossed, t_event,
