@@ -225,10 +225,34 @@ def batch_solve(
         m = jnp.any(x)
         return m if axis_name is None else jax.lax.psum(m.astype(jnp.int32), axis_name) > 0
 
-    def interpolate(ta, tb, ya, yb, k, s):
-        def one(ta, tb, ya, yb, k, s):
-            return interp_cls(t0=ta, t1=tb, y0=ya, y1=yb, k=k).evaluate(s)
-        return jax.vmap(one, in_axes=(0, 0, -1, -1, -1, 0), out_axes=-1)(ta, tb, ya, yb, k, s)
+    n_stages = len(tab.c) + 1
+
+    def weights(theta):
+        """The solver's dense interpolant at `theta` in [0, 1] as the weights of `y0`, `y1`
+        and each stage increment `h * f_i` (it is linear in them), for one trajectory.
+
+        Read off as the interpolant's gradient, so that the interpolation below is a few
+        fused multiply-adds per row: `vmap` of diffrax's `evaluate` would be a batched dot,
+        a library call that costs as much as a whole Runge-Kutta step on a CPU."""
+        def evaluate(y0, y1, k):
+            return interp_cls(t0=0.0, t1=1.0, y0=y0, y1=y1, k=k).evaluate(theta)
+        zero = jnp.zeros((), dtype)
+        _, pullback = jax.vjp(evaluate, zero, zero, jnp.zeros((n_stages,), dtype))
+        return pullback(jnp.ones((), dtype))
+
+    def interpolate(ta, tb, ya, yb, fs, h, s):
+        """The dense interpolant of the steps `[ta, tb]` (stage derivatives `fs`, step `h`) at
+        times `s`, row by row."""
+        same = ta == tb  # (as diffrax rescales time: a step of zero length gives its start)
+        theta = jnp.where(same, 0.0, s - ta) / jnp.where(same, 1.0, tb - ta)
+        wa, wb, wk = jax.vmap(weights, out_axes=(0, 0, -1))(theta)
+        out = []
+        for j, (a, b) in enumerate(zip(ya, yb)):
+            acc = None
+            for i, f in enumerate(fs):
+                acc = wk[i] * f[j] if acc is None else acc + wk[i] * f[j]
+            out.append(wa * a + wb * b + h * acc)
+        return tuple(out)
 
     def save(saved, nxt, active, bound, value_at):
         """Save the states at every save time `<= bound` not saved yet, for `active` rows."""
@@ -295,9 +319,6 @@ def batch_solve(
             fs.append(f(p, t + ci * h, _combine(y, h, row, fs)))
         return fs, _combine(y, h, tab.b, fs), _combine(None, h, tab.e, fs)
 
-    def stacked(fs, h):  # the dense interpolant's stage increments, (stages, m) per row
-        return tuple(h * jnp.stack(k, axis=0) for k in zip(*fs))
-
     def step(c):
         t, y, fa, dt, status, p = c["t"], c["y"], c["fa"], c["dt"], c["status"], c["p"]
         alive = status == _RUNNING
@@ -335,7 +356,7 @@ def batch_solve(
         # Save the states at the save times passed in this step (for a step that ends in an
         # event, after the event has been located).
         saved, nxt = save(c["saved"], c["nxt"], advance, t_new, lambda s: interpolate(
-            t, t_new, y, y1, stacked(fs, h), jnp.full(t.shape, s)))
+            t, t_new, y, y1, fs, h, jnp.full(t.shape, s)))
         underflow = alive & ~accept & (dt_new <= 4 * eps * jnp.maximum(jnp.abs(t), 1.0))
         nacc = c["nacc"] + accept.astype(jnp.int32)
         nrej = c["nrej"] + (alive & ~accept).astype(jnp.int32)
@@ -379,10 +400,10 @@ def batch_solve(
         h = jnp.where(crossed, carry["dt"], 0.0)
         ta, ya = t, y
         fs, yb, _ = attempt(p, ta, ya, carry["fa"], h)
-        tb, ks = ta + h, stacked(fs, h)
+        tb = ta + h
 
         def g(s):
-            return G(p, s, interpolate(ta, tb, ya, yb, ks, s))
+            return G(p, s, interpolate(ta, tb, ya, yb, fs, h, s))
 
         # Illinois: regula falsi that halves the weight of an end point kept twice.
         ga, gb = g(ta), g(tb)
@@ -418,9 +439,9 @@ def batch_solve(
             lambda c: (c[6] < iters) & jnp.any(c[5]), illinois,
             (ta, tb, ga, gb, jnp.zeros((n,), jnp.int32), unsettled(ta, tb, gb), 0))
         t_event = jnp.where(gb <= 0, b, tb)  # b: the bracket end where the events have fired
-        y_event = interpolate(ta, tb, ya, yb, ks, t_event)
+        y_event = interpolate(ta, tb, ya, yb, fs, h, t_event)
         saved, nxt = save(saved, nxt, crossed, t_event,
-                          lambda s: interpolate(ta, tb, ya, yb, ks, jnp.full((n,), s)))
+                          lambda s: interpolate(ta, tb, ya, yb, fs, h, jnp.full((n,), s)))
         t = jnp.where(crossed, t_event, t)
         y = _where(crossed, y_event, y)
         values = batched_c(p, t, from_rows(y))
