@@ -19,7 +19,8 @@ def add_arguments(p) -> None:
     p.add_argument("--mode", choices=("adaptive", "lockstep", "vmap"), default="adaptive",
                    help="per-trajectory steps (default), one step size for the batch, or "
                         "jax.vmap over simulate (any scene)")
-    p.add_argument("--chunk", type=int, help="trajectories per compiled call (default 16384)")
+    p.add_argument("--chunk", type=int,
+                   help="trajectories per compiled call (default: equal chunks of at most 16384)")
     p.add_argument("--out", metavar="DIR",
                    help="write each finished chunk here; run again to resume")
     p.add_argument("--progress", action="store_true", help="show a progress bar")
