@@ -319,17 +319,39 @@ def batch_solve(
             fs.append(f(p, t + ci * h, _combine(y, h, row, fs)))
         return fs, _combine(y, h, tab.b, fs), _combine(None, h, tab.e, fs)
 
-    def step(c):
+    # Each iteration decides on the attempt the one before it computed, then computes the next:
+    # the attempt (`h`, and `y1` with the error norm packed two by two into complex rows) is
+    # carried from one iteration to the next. XLA computes every output element of a fused
+    # loop on its own, so each of the rows of `y1` and the norm would compute all the stages
+    # again; a complex row holds two of them and computes the stages once for both, and,
+    # carried, it is not unpacked back into the computation (about 12% faster on the
+    # torque-free body).
+    def prepare(c):
+        """The next attempt of every row: its step size and its packed `(y1, norm)`."""
         t, y, fa, dt, status, p = c["t"], c["y"], c["fa"], c["dt"], c["status"], c["p"]
         alive = status == _RUNNING
         h = jnp.where(alive, jnp.minimum(dt, t1 - t), 0.0)
         if lockstep:
             h = jnp.where(alive, bmin(jnp.where(alive, h, jnp.inf)), 0.0)
-        fs, y1, err = attempt(p, t, y, fa, h)
-        # (Its square root also stops XLA from computing the stages again in every consumer of
-        # the norm: it is an expensive operation, which XLA does not duplicate.)
+        _, y1, err = attempt(p, t, y, fa, h)
         norm = _rms(tuple(e / (atol + rtol * jnp.maximum(jnp.abs(a), jnp.abs(b)))
                           for e, a, b in zip(err, y, y1)))
+        vals = tuple(y1) + (norm,)
+        packed = tuple(jax.lax.complex(vals[i], vals[i + 1])
+                       for i in range(0, len(vals) - 1, 2))
+        return dict(c, h=h, attempt=packed + vals[len(vals) - len(vals) % 2:])
+
+    def unpack(packed):
+        vals = []
+        for x in packed:
+            vals += [jnp.real(x), jnp.imag(x)] if jnp.iscomplexobj(x) else [x]
+        return tuple(vals[:-1]), vals[-1]
+
+    def step(c):
+        t, y, fa, dt, status, p = c["t"], c["y"], c["fa"], c["dt"], c["status"], c["p"]
+        alive = status == _RUNNING
+        h = c["h"]
+        y1, norm = unpack(c["attempt"])
         finite = jnp.isfinite(norm)
         ok = finite & (norm <= 1.0)
         if lockstep:
@@ -356,7 +378,7 @@ def batch_solve(
         # Save the states at the save times passed in this step (for a step that ends in an
         # event, after the event has been located).
         saved, nxt = save(c["saved"], c["nxt"], advance, t_new, lambda s: interpolate(
-            t, t_new, y, y1, fs, h, jnp.full(t.shape, s)))
+            t, t_new, y, y1, attempt(p, t, y, fa, h)[0], h, jnp.full(t.shape, s)))
         underflow = alive & ~accept & (dt_new <= 4 * eps * jnp.maximum(jnp.abs(t), 1.0))
         nacc = c["nacc"] + accept.astype(jnp.int32)
         nrej = c["nrej"] + (alive & ~accept).astype(jnp.int32)
@@ -366,9 +388,10 @@ def batch_solve(
             hit, EVENT, jnp.where(out_of_steps, STATUS.index("max_steps_reached"), jnp.where(
                 underflow, jnp.where(finite, STATUS.index("step_size_underflow"),
                                      STATUS.index("non_finite")), status))))
-        return dict(t=jnp.where(hit, t, t_new), y=_where(advance, y1, y),
-                    fa=_where(advance, fs[-1], fa) if tab.fsal else fa, dt=dt_new,
-                    status=status, nacc=nacc, nrej=nrej, p=p, saved=saved, nxt=nxt)
+        return prepare(dict(
+            t=jnp.where(hit, t, t_new), y=_where(advance, y1, y),
+            fa=_where(advance, f(p, t + h, y1), fa) if tab.fsal else fa, dt=dt_new,
+            status=status, nacc=nacc, nrej=nrej, p=p, saved=saved, nxt=nxt))
 
     def running(c):
         return c["status"] == _RUNNING
@@ -384,11 +407,16 @@ def batch_solve(
             return jax.lax.while_loop(lambda c: jnp.any(running(c)), step, c)
         half = m // 2
         c = jax.lax.while_loop(lambda c: jnp.sum(running(c)) > half, step, c)
-        order = jnp.argsort(~running(c), stable=True)[:half]  # the running rows first
+        # The running rows (at most `half`) first, then finished ones, each in their order: a
+        # partition by prefix sums, linear in `m` (a sort of the flags cost a dozen steps).
+        run = running(c)
+        pos = jnp.where(run, jnp.cumsum(run) - 1, jnp.sum(run) + jnp.cumsum(~run) - 1)
+        order = jnp.zeros((m,), jnp.int32).at[pos].set(
+            jnp.arange(m, dtype=jnp.int32), unique_indices=True)[:half]
         sub = advance(jax.tree.map(lambda x: x[..., order], c), half)
         return jax.tree.map(lambda x, s: x.at[..., order].set(s), c, sub)
 
-    carry = advance(carry, n)
+    carry = advance(prepare(carry), n)
     t, y, status, p = carry["t"], carry["y"], carry["status"], carry["p"]
     saved, nxt = carry["saved"], carry["nxt"]
 
