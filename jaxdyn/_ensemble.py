@@ -583,13 +583,14 @@ def ensemble(
         lo, hi = c * chunk_size, min((c + 1) * chunk_size, n)
         idx = np.arange(lo, lo + chunk_size)
         rows = np.minimum(idx, hi - 1)  # the last chunk is padded with copies of its last row
-        sharded = (jnp.asarray(idx, jnp.uint32),
-                   {k: jnp.asarray(np.asarray(v)[rows], dtype) for k, v in y_batch.items()},
-                   {k: jnp.asarray(np.asarray(v)[rows]) for k, v in p_batch.items()})
+        # NumPy rows, moved to the devices in one transfer (not a JAX array on the first device
+        # first, then resharded).
+        sharded = (idx.astype(np.uint32),
+                   {k: np.asarray(np.asarray(v)[rows], dtype) for k, v in y_batch.items()},
+                   {k: np.asarray(np.asarray(v)[rows]) for k, v in p_batch.items()})
         (fn, sharding), seconds = _compiled_chunk(dyn, static, sharded, config, devices)
         compile_s += seconds
-        if sharding is not None:
-            sharded = jax.device_put(sharded, sharding)
+        sharded = jax.device_put(sharded, sharding if sharding is not None else devices[0])
         return c, hi - lo, fn(dyn, sharded)
 
     def finish(started):
@@ -664,9 +665,14 @@ def ensemble(
         col += size
         if name in values:
             v = values[name][ok].astype(np.float64)
+            finite = np.isfinite(v)
             with np.errstate(invalid="ignore"):
-                q = np.nanquantile(np.where(np.isfinite(v), v, np.nan), _QUANTILES, axis=0) \
-                    if v.shape[0] else np.full((len(_QUANTILES),) + v.shape[1:], np.nan)
+                if not v.shape[0]:
+                    q = np.full((len(_QUANTILES),) + v.shape[1:], np.nan)
+                elif finite.all():  # (nanquantile goes column by column in Python)
+                    q = np.quantile(v, _QUANTILES, axis=0)
+                else:
+                    q = np.nanquantile(np.where(finite, v, np.nan), _QUANTILES, axis=0)
             s["quantiles"] = {f"{int(p * 100)}%": q[i] for i, p in enumerate(_QUANTILES)}
         statistics[name] = s
     timing = {"compile_s": round(compile_s, 4), "run_s": round(run_s, 4),
