@@ -14,7 +14,9 @@ Methods, all in this one run, with every core as a JAX CPU device (`jax_num_cpu_
 `jaxdyn montecarlo` sets it; `--devices=1` for one):
 
 - jaxdyn: `jd.ensemble` (default mode: per-trajectory adaptive Tsit5 over a batch, sharded
-  across the devices; chunks of `--chunk` trajectories), and its lock-step mode;
+  across the devices; chunks of `--chunk` trajectories, by default its own choice), observing
+  what the other methods return (final rates; fall time), and its lock-step mode; also with
+  its default observation (every output of the scene at the final time), for comparison;
 - plain vmap: `jax.jit(jax.vmap(diffrax.diffeqsolve))` with Tsit5 and a PID controller (and a
   `diffrax.Event` for the rod), as a user would write it (one device);
 - SciPy: a loop over `scipy.integrate.solve_ivp` (RK45 and DOP853; the faster is compared) on
@@ -26,7 +28,12 @@ Methods, all in this one run, with every core as a JAX CPU device (`jax_num_cpu_
   the whole batch at once, in chunks, and in chunks sharded across the devices, for the rod both
   with the C library's sine and cosine and with jaxdyn's vectorised `sincos`, each compiled
   with XLA's default options and with those `jd.ensemble` compiles its chunks with (512-bit
-  vectors on a CPU); the fastest is the limit.
+  vectors on a CPU), each with the state as real rows and packed two rows to a complex row
+  (the trick `jd.ensemble` uses: XLA then computes a step once for both rows of a pair); the
+  fastest is the limit. Chunks are jaxdyn's size and 16384.
+
+Peak memory: resident set of a fresh process running 1, 4 and 16 chunks of `--chunk` (default
+16384) trajectories with nothing kept.
 
 Run: `python benchmarks/montecarlo.py [--quick] [--n N]`. Prints one JSON object.
 """
@@ -103,17 +110,35 @@ def rk_step(f, y, h):
     return y1, ks[0]
 
 
+def pack(rows):
+    """Rows two by two into complex rows (XLA then computes a step once for both of a pair)."""
+    out = tuple(jax.lax.complex(rows[i], rows[i + 1]) for i in range(0, len(rows) - 1, 2))
+    return out + tuple(rows[len(rows) - len(rows) % 2:])
+
+
+def unpack(packed, m):
+    rows = []
+    for x in packed:
+        rows += [jnp.real(x), jnp.imag(x)] if jnp.iscomplexobj(x) else [x]
+    return tuple(rows[:m])
+
+
 def euler_rows(w):
     i1, i2, i3 = INERTIA
     w1, w2, w3 = w
     return ((i2 - i3) / i1 * w2 * w3, (i3 - i1) / i2 * w3 * w1, (i1 - i2) / i3 * w1 * w2)
 
 
-def lean_free(w0, steps):
+def lean_free(w0, steps, packed=False):
     h = T_FREE / steps
     y = tuple(w0[:, j] for j in range(3))
-    y, _ = jax.lax.scan(lambda y, _: (rk_step(euler_rows, y, h)[0], None), y, None,
-                        length=steps)
+    if packed:
+        y, _ = jax.lax.scan(lambda y, _: (pack(rk_step(euler_rows, unpack(y, 3), h)[0]), None),
+                            pack(y), None, length=steps)
+        y = unpack(y, 3)
+    else:
+        y, _ = jax.lax.scan(lambda y, _: (rk_step(euler_rows, y, h)[0], None), y, None,
+                            length=steps)
     return jnp.stack(y, axis=-1)
 
 
@@ -124,17 +149,19 @@ def rod_rows(y, trig=None):
     return (rate, acc)
 
 
-def lean_rod(y0, h, trig=None):
+def lean_rod(y0, h, trig=None, packed=False):
     """Fixed steps until every rod is flat; fall time from the cubic Hermite interpolant."""
     theta, rate = y0[:, 0], y0[:, 1]
     n = theta.shape[0]
     half = jnp.pi / 2
+    into, back = (pack, lambda y: unpack(y, 2)) if packed else (tuple, tuple)
 
     def cond(c):
         return jnp.any(~c[3])
 
     def body(c):
         t, y, f, done, out = c
+        y = back(y)
         y1, _ = rk_step(lambda y: rod_rows(y, trig), y, h)
         f1 = rod_rows(y1, trig)
         hit = ~done & (jnp.abs(y1[0]) >= half)
@@ -150,10 +177,10 @@ def lean_rod(y0, h, trig=None):
                   + (-6 * s**2 + 6 * s) * th1 + (3 * s**2 - 2 * s) * d1)
             s = jnp.clip(s - (sgn * p - half) / (sgn * dp), 0.0, 1.0)
         out = jnp.where(hit, t + s * h, out)
-        return t + h, y1, f1, done | hit, out
+        return t + h, into(y1), f1, done | hit, out
 
     y = (theta, rate)
-    c = (jnp.zeros(()), y, rod_rows(y, trig), jnp.zeros(n, bool), jnp.full(n, jnp.inf))
+    c = (jnp.zeros(()), into(y), rod_rows(y, trig), jnp.zeros(n, bool), jnp.full(n, jnp.inf))
     return jax.lax.while_loop(cond, body, c)[4]
 
 
@@ -246,15 +273,22 @@ def compare(out, ens, observed, ref, inputs, plain_fn, scipy_fn, lean_fn, first_
     """Every method on one problem: `ens(mode)` runs jaxdyn, `inputs` (n, state) the initial
     states of the others, `lean_fn(inputs, steps)` the fixed-step kernel."""
     n = len(inputs)
-    for mode in ("adaptive", "lockstep"):
-        res = ens(mode)
-        seconds, _ = timed(lambda: ens(mode).status, repeats)
+    # jaxdyn observing only what the other methods compute (the comparison), and with its
+    # default observation (every output of the scene at the final time, kept for each run).
+    for name, mode, everything in (("adaptive", "adaptive", False),
+                                   ("lockstep", "lockstep", False),
+                                   ("adaptive_all_outputs", "adaptive", True)):
+        res = ens(mode, everything)
+        seconds, _ = timed(lambda: ens(mode, everything).status, repeats)
         e = errors(res.values[observed][:CHECK], ref)
-        out[f"jaxdyn_{mode}"] = {
+        out[f"jaxdyn_{name}"] = {
             "trajectories_per_s": n / seconds, "seconds": seconds,
-            "compile_s": res.timing["compile_s"], "failed": res.failed,
-            "mean_steps": float(res.steps.mean()), "max_error": e[0], "median_error": e[1]}
+            "compile_s": res.timing["compile_s"], "chunk_size": res.chunk_size,
+            "failed": res.failed, "mean_steps": float(res.steps.mean()), "max_error": e[0],
+            "median_error": e[1]}
     target = out["jaxdyn_adaptive"]["max_error"]
+    if chunk is None:
+        chunk = out["jaxdyn_adaptive"]["chunk_size"]
 
     plain = jax.jit(plain_fn)
     x = jnp.asarray(inputs)
@@ -274,30 +308,34 @@ def compare(out, ens, observed, ref, inputs, plain_fn, scipy_fn, lean_fn, first_
     steps, e = lean_search(lean, ref, target, first_steps)
 
     # The limit: the fastest of the whole batch at once, chunks in a loop, and chunks sharded
-    # across the devices, with the C library's sine and cosine and (where there are any) with
-    # jaxdyn's vectorised sincos.
+    # across the devices (chunks of jaxdyn's size and of 16384), with the C library's sine and
+    # cosine and (where there are any) with jaxdyn's vectorised sincos.
     devices = jax.devices()
     k = len(devices)
-    per = max(chunk // k, 1)
-    m = (n // (per * k)) * per * k
     mesh = jax.sharding.Mesh(np.asarray(devices), ("b",))
     spec = jax.sharding.PartitionSpec("b")
 
-    def chunked(fn):
+    def chunked(fn, per):
         def run(y):
             r = jax.lax.map(fn, y.reshape((-1, per) + y.shape[1:]))
             return r.reshape((-1,) + r.shape[2:])
         return run
 
     rows = {}
-    for trig in lean_trigs:
-        fn = partial(lean_fn, steps=steps, trig=trig) if trig is not None else \
-            partial(lean_fn, steps=steps)
-        name = "libm" if trig is None else "sincos"
-        layouts = {"whole_batch": (fn, n), "chunked": (chunked(fn), m)}
-        if k > 1:
-            layouts["sharded"] = (jax.shard_map(
-                chunked(fn), mesh=mesh, in_specs=spec, out_specs=spec, check_vma=False), m)
+    for trig, packed in [(trig, packed) for trig in lean_trigs for packed in (False, True)]:
+        fn = partial(lean_fn, steps=steps, packed=packed)
+        if trig is not None:
+            fn = partial(fn, trig=trig)
+        name = ("libm" if trig is None else "sincos") + ("_packed" if packed else "")
+        layouts = {"whole_batch": (fn, n)}
+        for size in sorted({chunk, 16384}):
+            per = max(size // k, 1)
+            m = (n // (per * k)) * per * k  # whole chunks only
+            layouts[f"chunked{size}"] = (chunked(fn, per * k), m)
+            if k > 1:
+                layouts[f"sharded{size}"] = (jax.shard_map(
+                    chunked(fn, per), mesh=mesh, in_specs=spec, out_specs=spec,
+                    check_vma=False), m)
         for layout, (f, size) in layouts.items():
             # XLA's default, and the options jd.ensemble compiles its chunks with.
             for tag, options in (("", None), ("_vec512", CPU_COMPILER_OPTIONS)):
@@ -320,9 +358,13 @@ def free_body(n, chunk, repeats, scipy_n, rng):
     ref = np.asarray(jax.jit(jax.vmap(lambda w: jd.torque_free_omega(
         jnp.asarray(INERTIA), w, T_FREE)))(jnp.asarray(w0[:CHECK])))
 
-    def ens(mode):
+    def rates(tr):  # one function object, so that jd.ensemble reuses its compiled chunks
+        return {"omega": tr.y_final["omega"]}
+
+    def ens(mode, everything):
+        observe = None if everything else rates
         return jd.ensemble(scene, {"omega": w0}, T_FREE, rtol=RTOL, atol=ATOL, mode=mode,
-                           chunk_size=chunk, keep=("omega",))
+                           chunk_size=chunk, observe=observe)
 
     out = {"problem": "torque-free body, rates only, t in [0, 20]", "n": n}
     return compare(out, ens, "omega", ref, w0, plain_free, scipy_free, lean_free, 60,
@@ -336,14 +378,19 @@ def rod(n, chunk, repeats, scipy_n, rng):
     scene = jd.Scene(jd.FallingRod(length=LENGTH, g=G))
     ref = np.array([float(scene.body.fall_time(a, b)) for a, b in y0[:CHECK]])
 
-    def ens(mode):
+    def fall_time(tr):  # one function object, so that jd.ensemble reuses its compiled chunks
+        return {"t_final": tr.t_final}
+
+    def ens(mode, everything):
+        observe = None if everything else fall_time
         return jd.ensemble(scene, {"theta": theta0, "theta_dot": rate0}, T_ROD, rtol=RTOL,
-                           atol=ATOL, mode=mode, chunk_size=chunk, keep=("t_final",))
+                           atol=ATOL, mode=mode, chunk_size=chunk, observe=observe)
 
     out = {"problem": "falling rod to impact (terminating event)", "n": n,
            "lean_steps_are": "steps per unit of simulated time"}
     return compare(out, ens, "t_final", ref, y0, plain_rod, scipy_rod,
-                   lambda y, steps, trig=None: lean_rod(y, 1.0 / steps, trig), 20,
+                   lambda y, steps, trig=None, packed=False: lean_rod(y, 1.0 / steps, trig,
+                                                                      packed), 20,
                    chunk=chunk, repeats=repeats, scipy_n=scipy_n, lean_trigs=(None, sincos))
 
 
@@ -372,6 +419,7 @@ def memory_probe(n, chunk):
 
 
 def memory(chunk):
+    chunk = chunk or 16384
     rows = []
     for k in (1, 4, 16):
         n = k * chunk
@@ -386,7 +434,8 @@ def memory(chunk):
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--n", type=int, default=100_000)
-    parser.add_argument("--chunk", type=int, default=16384)
+    parser.add_argument("--chunk", type=int, default=None,
+                        help="trajectories per chunk (default: jaxdyn's own choice)")
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--scipy-n", type=int, default=200)
     parser.add_argument("--quick", action="store_true", help="n = 32768, one repeat")
