@@ -67,7 +67,8 @@ from diffrax._solver.tsit5 import _tsit5_tableau as TSIT5  # noqa: E402
 from scipy.integrate import solve_ivp  # noqa: E402
 
 import jaxdyn as jd  # noqa: E402
-from jaxdyn._ensemble import CPU_COMPILER_OPTIONS  # noqa: E402
+from jaxdyn._batch_solve import pack_pairs, unpack_pairs  # noqa: E402
+from jaxdyn._ensemble import CPU_COMPILER_OPTIONS, DEFAULT_CHUNK  # noqa: E402
 from jaxdyn._fastmath import sincos  # noqa: E402
 
 RTOL, ATOL = 1e-8, 1e-10
@@ -110,19 +111,6 @@ def rk_step(f, y, h):
     return y1, ks[0]
 
 
-def pack(rows):
-    """Rows two by two into complex rows (XLA then computes a step once for both of a pair)."""
-    out = tuple(jax.lax.complex(rows[i], rows[i + 1]) for i in range(0, len(rows) - 1, 2))
-    return out + tuple(rows[len(rows) - len(rows) % 2:])
-
-
-def unpack(packed, m):
-    rows = []
-    for x in packed:
-        rows += [jnp.real(x), jnp.imag(x)] if jnp.iscomplexobj(x) else [x]
-    return tuple(rows[:m])
-
-
 def euler_rows(w):
     i1, i2, i3 = INERTIA
     w1, w2, w3 = w
@@ -133,9 +121,10 @@ def lean_free(w0, steps, packed=False):
     h = T_FREE / steps
     y = tuple(w0[:, j] for j in range(3))
     if packed:
-        y, _ = jax.lax.scan(lambda y, _: (pack(rk_step(euler_rows, unpack(y, 3), h)[0]), None),
-                            pack(y), None, length=steps)
-        y = unpack(y, 3)
+        y, _ = jax.lax.scan(
+            lambda y, _: (pack_pairs(rk_step(euler_rows, unpack_pairs(y), h)[0]), None),
+            pack_pairs(y), None, length=steps)
+        y = unpack_pairs(y)
     else:
         y, _ = jax.lax.scan(lambda y, _: (rk_step(euler_rows, y, h)[0], None), y, None,
                             length=steps)
@@ -154,7 +143,7 @@ def lean_rod(y0, h, trig=None, packed=False):
     theta, rate = y0[:, 0], y0[:, 1]
     n = theta.shape[0]
     half = jnp.pi / 2
-    into, back = (pack, lambda y: unpack(y, 2)) if packed else (tuple, tuple)
+    into, back = (pack_pairs, unpack_pairs) if packed else (tuple, tuple)
 
     def cond(c):
         return jnp.any(~c[3])
@@ -328,7 +317,7 @@ def compare(out, ens, observed, ref, inputs, plain_fn, scipy_fn, lean_fn, first_
             fn = partial(fn, trig=trig)
         name = ("libm" if trig is None else "sincos") + ("_packed" if packed else "")
         layouts = {"whole_batch": (fn, n)}
-        for size in sorted({chunk, 16384}):
+        for size in sorted({chunk, DEFAULT_CHUNK}):
             per = max(size // k, 1)
             m = (n // (per * k)) * per * k  # whole chunks only
             layouts[f"chunked{size}"] = (chunked(fn, per * k), m)
@@ -419,7 +408,7 @@ def memory_probe(n, chunk):
 
 
 def memory(chunk):
-    chunk = chunk or 16384
+    chunk = chunk or DEFAULT_CHUNK
     rows = []
     for k in (1, 4, 16):
         n = k * chunk
