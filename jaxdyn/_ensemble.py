@@ -1,6 +1,8 @@
 """Monte Carlo ensembles: many runs of one scene with varied parameters and initial states."""
 
+import concurrent.futures
 import dataclasses
+import functools
 import math
 import os
 import time
@@ -47,7 +49,9 @@ class Ensemble:
     - `values`: the kept observations, name -> array with a leading axis of length `n` (values of
       failed trajectories are not meaningful: mask with `ok`).
     - `statistics`: name -> `count`, `mean`, `std`, `min`, `max` (and `quantiles` for kept
-      values) over the successful trajectories, accumulated chunk by chunk.
+      values) over the successful trajectories. The moments are accumulated chunk by chunk;
+      the quantiles, a sort of the kept values, are computed when first asked for
+      (`moments`: the statistics without quantiles).
     - `steps`: accepted steps per trajectory.
     - `timing`: `compile_s`, `run_s` (after compilation), `trajectories_per_s`.
     """
@@ -55,7 +59,7 @@ class Ensemble:
     n: int
     status: np.ndarray
     values: dict[str, np.ndarray]
-    statistics: dict[str, dict[str, Any]]
+    moments: dict[str, dict[str, np.ndarray]] = dataclasses.field(repr=False)
     steps: np.ndarray
     reasons: dict[int, str]
     mode: str
@@ -66,6 +70,26 @@ class Ensemble:
     recomputed_chunks: tuple[int, ...] = ()
 
     status_names = STATUS
+
+    @functools.cached_property
+    def statistics(self) -> dict[str, dict[str, Any]]:
+        out = {}
+        ok = self.ok
+        for name, s in self.moments.items():
+            s = dict(s)
+            if name in self.values:
+                v = self.values[name][ok].astype(np.float64)
+                finite = np.isfinite(v)
+                with np.errstate(invalid="ignore"):
+                    if not v.shape[0]:
+                        q = np.full((len(_QUANTILES),) + v.shape[1:], np.nan)
+                    elif finite.all():  # (nanquantile goes column by column in Python)
+                        q = np.quantile(v, _QUANTILES, axis=0)
+                    else:
+                        q = np.nanquantile(np.where(finite, v, np.nan), _QUANTILES, axis=0)
+                s["quantiles"] = {f"{int(p * 100)}%": q[i] for i, p in enumerate(_QUANTILES)}
+            out[name] = s
+        return out
 
     @property
     def ok(self) -> np.ndarray:
@@ -343,6 +367,29 @@ def _compiled_chunk(dyn, static, sharded, config, devices):
     if key in _COMPILED:
         return _COMPILED[key], 0.0
     body = partial(_chunk_core, static=static, config=config, axis_name=None)
+    options = CPU_COMPILER_OPTIONS if devices[0].platform == "cpu" else None
+    start = time.perf_counter()
+    if len(devices) > 1 and config[2] == "adaptive":
+        # Per-trajectory stepping needs nothing across devices: one single-device program
+        # per device, each given its rows of the chunk. (A program spanning several CPU
+        # devices is dispatched only once the one before it has finished on every device, so
+        # each chunk would wait for its slowest shard; single-device programs queue up, and
+        # each device goes on to its next chunk when it is done with its own rows.)
+        rows = jax.tree.leaves(sharded)[0].shape[0] // len(devices)
+
+        def lower(device):
+            where = jax.sharding.SingleDeviceSharding(device)
+            spec = [jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype,
+                                                                sharding=where), dyn),
+                    jax.tree.map(lambda x: jax.ShapeDtypeStruct((rows,) + x.shape[1:], x.dtype,
+                                                                sharding=where), sharded)]
+            return jax.jit(body).lower(*spec)
+
+        lowered = [lower(device) for device in devices]
+        with concurrent.futures.ThreadPoolExecutor(len(devices)) as pool:  # XLA frees the GIL
+            compiled = list(pool.map(lambda lw: lw.compile(options), lowered))
+        _COMPILED[key] = (compiled, "per_device")
+        return _COMPILED[key], time.perf_counter() - start
     sharding, shardings = None, {}
     if len(devices) > 1:
         mesh = jax.sharding.Mesh(np.asarray(devices), ("batch",))
@@ -359,8 +406,6 @@ def _compiled_chunk(dyn, static, sharded, config, devices):
             body = jax.shard_map(
                 partial(_chunk_core, static=static, config=config, axis_name="batch"),
                 mesh=mesh, in_specs=(whole, spec), out_specs=spec, check_vma=False)
-    start = time.perf_counter()
-    options = CPU_COMPILER_OPTIONS if devices[0].platform == "cpu" else None
     compiled = jax.jit(body, **shardings).lower(dyn, sharded).compile(options)
     seconds = time.perf_counter() - start
     _COMPILED[key] = (compiled, sharding)
@@ -577,6 +622,8 @@ def ensemble(
     compile_s, computed, resumed = 0.0, 0, 0
     msgs = scene.violations(ex_y0)[1]
 
+    dyn_on: list = []  # the unbatched inputs, on each device
+
     def launch(c):
         """Start chunk `c` (JAX dispatches asynchronously); returns its unfinished results."""
         nonlocal compile_s
@@ -590,6 +637,13 @@ def ensemble(
                    {k: np.asarray(np.asarray(v)[rows]) for k, v in p_batch.items()})
         (fn, sharding), seconds = _compiled_chunk(dyn, static, sharded, config, devices)
         compile_s += seconds
+        if sharding == "per_device":
+            k = chunk_size // d
+            if not dyn_on:
+                dyn_on.extend(jax.device_put(dyn, device) for device in devices)
+            parts = [jax.device_put(jax.tree.map(lambda x: x[i * k:(i + 1) * k], sharded),
+                                    device) for i, device in enumerate(devices)]
+            return c, hi - lo, [f(dy, part) for f, dy, part in zip(fn, dyn_on, parts)]
         sharded = jax.device_put(sharded, sharding if sharding is not None else devices[0])
         return c, hi - lo, fn(dyn, sharded)
 
@@ -597,6 +651,9 @@ def ensemble(
         """Bring a started chunk's results to the host: what is kept (all values when the
         chunks go to files), the chunk's moments, status, reasons and steps."""
         c, m, result = started
+        if isinstance(result, list):  # one result per device, rows in device order
+            result = jax.tree.map(lambda *xs: np.concatenate([np.asarray(x) for x in xs]),
+                                  *result)
         arrays = {f"values/{k}": np.asarray(v)[:m] for k, v in result["values"].items()
                   if store is not None or keep_names is None or k in keep_names}
         arrays.update({f"moments/{f}": np.asarray(v) for f, v in result["moments"].items()})
@@ -653,7 +710,6 @@ def ensemble(
                 kept.setdefault(name, []).append(v)
     values = {k: np.concatenate(v) for k, v in kept.items()}
     status = np.concatenate(status_parts).astype(np.int8)
-    ok = np.isin(status, _OK)
     # The moments' columns are the observed values in the order of their names.
     layout = sorted((k[len("shape/"):], tuple(int(d) for d in v))
                     for k, v in results[0].items() if k.startswith("shape/"))
@@ -661,24 +717,12 @@ def ensemble(
     statistics, col = {}, 0
     for name, shape in layout:
         size = int(np.prod(shape))
-        s = {f: x[col: col + size].reshape(shape) for f, x in columns.items()}
+        statistics[name] = {f: x[col: col + size].reshape(shape) for f, x in columns.items()}
         col += size
-        if name in values:
-            v = values[name][ok].astype(np.float64)
-            finite = np.isfinite(v)
-            with np.errstate(invalid="ignore"):
-                if not v.shape[0]:
-                    q = np.full((len(_QUANTILES),) + v.shape[1:], np.nan)
-                elif finite.all():  # (nanquantile goes column by column in Python)
-                    q = np.quantile(v, _QUANTILES, axis=0)
-                else:
-                    q = np.nanquantile(np.where(finite, v, np.nan), _QUANTILES, axis=0)
-            s["quantiles"] = {f"{int(p * 100)}%": q[i] for i, p in enumerate(_QUANTILES)}
-        statistics[name] = s
     timing = {"compile_s": round(compile_s, 4), "run_s": round(run_s, 4),
               "trajectories_per_s": (computed / run_s) if run_s > 0 else None}
     return Ensemble(
-        n=n, status=status, values=values, statistics=statistics,
+        n=n, status=status, values=values, moments=statistics,
         steps=np.concatenate(steps_parts), reasons=reasons, mode=mode, chunk_size=chunk_size,
         devices=len(devices), timing=timing, resumed_chunks=resumed,
         recomputed_chunks=tuple(store.recomputed) if store is not None else (),
