@@ -714,15 +714,15 @@ def ensemble(
     layout = sorted((k[len("shape/"):], tuple(int(d) for d in v))
                     for k, v in results[0].items() if k.startswith("shape/"))
     columns = moments.result()
-    statistics, col = {}, 0
+    by_name, col = {}, 0
     for name, shape in layout:
         size = int(np.prod(shape))
-        statistics[name] = {f: x[col: col + size].reshape(shape) for f, x in columns.items()}
+        by_name[name] = {f: x[col: col + size].reshape(shape) for f, x in columns.items()}
         col += size
     timing = {"compile_s": round(compile_s, 4), "run_s": round(run_s, 4),
               "trajectories_per_s": (computed / run_s) if run_s > 0 else None}
     return Ensemble(
-        n=n, status=status, values=values, moments=statistics,
+        n=n, status=status, values=values, moments=by_name,
         steps=np.concatenate(steps_parts), reasons=reasons, mode=mode, chunk_size=chunk_size,
         devices=len(devices), timing=timing, resumed_chunks=resumed,
         recomputed_chunks=tuple(store.recomputed) if store is not None else (),
