@@ -172,7 +172,7 @@ def batch_solve(
     field: Callable, conditions: Callable | None, event_names: tuple[str, ...],
     flags, params, y0, t0, t1, ts, *, solver, rtol, atol, max_steps: int,
     lockstep: bool, dt0=None, axis_name: str | None = None,
-    compact_rows: int | None = None,
+    compact_rows: int | None = None, time_scale=None,
 ) -> BatchRun:
     """Integrate a batch of `n` trajectories from `t0` to `t1`.
 
@@ -184,6 +184,12 @@ def batch_solve(
     - `flags`: `(n, n_checks)` booleans, true where a check of the inputs fails.
     - `params`, `y0`: per-trajectory parameters and initial states, leading axis `n`.
     - `ts`: save times (1-D, increasing, within `[t0, t1]`), or `None`.
+    - `rtol`, `atol`: a step is accepted where the RMS norm of `err / (atol + rtol |y|)` is
+      at most 1. `atol` is a scalar, or a pytree like `y0` with one value per trajectory and
+      variable (leaves `(n,)`): jaxdyn's ensembles pass `rtol` times each variable's natural
+      scale, as `ScaledPIDController` does for single runs.
+    - `time_scale`: `(n,)` time scales of the trajectories (default 1), in whose units the
+      starting step is chosen, so that it does not depend on the units of time.
     - `lockstep`: one step size for the whole batch (the smallest any trajectory needs).
     - `axis_name`: the mesh axis when the batch is one shard of a larger batch; lock-step
       reductions then span every shard, so that sharded and unsharded runs agree.
@@ -215,7 +221,15 @@ def batch_solve(
             i += size
         return jax.tree.unflatten(treedef, leaves)
 
+    if isinstance(atol, dict | tuple | list):  # per trajectory and variable: rows (n,) each
+        atol = to_rows(_last(jax.tree.map(
+            lambda a, x: jnp.broadcast_to(a.reshape((n,) + (1,) * (x.ndim - 1)), x.shape),
+            atol, y0)))
+    else:
+        atol = tuple(x for x in to_rows(_last(jax.tree.map(
+            lambda x: jnp.full(x.shape, atol, x.dtype), y0))))
     y0, params = to_rows(_last(y0)), _last(params)
+    time_scale = jnp.ones((n,), y0[0].dtype) if time_scale is None else time_scale
     batched_field = jax.vmap(field, in_axes=(-1, 0, -1), out_axes=-1)
 
     def f(p, t, y):
@@ -304,17 +318,19 @@ def batch_solve(
     else:
         at_start = jnp.zeros((n,), bool)
     if dt0 is None:  # Hairer, Norsett & Wanner's starting step, as diffrax chooses it
-        scale = tuple(atol + rtol * jnp.abs(y) for y in y0)
+        # (in units of each trajectory's time scale, as `ScaledPIDController` does)
+        T = time_scale
+        scale = tuple(a + rtol * jnp.abs(y) for a, y in zip(atol, y0))
         d0 = _rms(tuple(y / s for y, s in zip(y0, scale)))
-        d1 = _rms(tuple(k / s for k, s in zip(f0, scale)))
+        d1 = _rms(tuple(k / s for k, s in zip(f0, scale))) * T
         h0 = jnp.where((d0 < 1e-5) | (d1 < 1e-5), 1e-6, 0.01 * d0 / d1)
-        f_euler = f(params, tvec + h0, tuple(y + h0 * k for y, k in zip(y0, f0)))
-        d2 = _rms(tuple((a - b) / s for a, b, s in zip(f_euler, f0, scale))) / h0
+        f_euler = f(params, tvec + h0 * T, tuple(y + h0 * T * k for y, k in zip(y0, f0)))
+        d2 = _rms(tuple((a - b) / s for a, b, s in zip(f_euler, f0, scale))) * T / h0
         dmax = jnp.maximum(d1, d2)
         h1 = jnp.where(dmax <= 1e-15, jnp.maximum(1e-6, h0 * 1e-3),
                        (0.01 / dmax) ** (1.0 / tab.order))
-        dt = jnp.minimum(100 * h0, h1)
-        dt = jnp.where(jnp.isfinite(dt) & (dt > 0), dt, 1e-6)
+        dt = jnp.minimum(100 * h0, h1) * T
+        dt = jnp.where(jnp.isfinite(dt) & (dt > 0), dt, 1e-6 * T)
     else:
         dt = jnp.full((n,), jnp.asarray(dt0, dtype))
     dt = jnp.minimum(dt, t1 - t0).astype(dtype)
@@ -327,7 +343,7 @@ def batch_solve(
     # Every array in the carry has the batch as its last axis, so that the batch can be
     # compacted by one gather.
     carry = dict(t=tvec, y=y0, dt=dt, status=status, nacc=zeros, nrej=zeros, p=params,
-                 saved=saved, nxt=nxt)
+                 saved=saved, nxt=nxt, atol=atol)
 
     # -- steps ----------------------------------------------------------------------------------
     def attempt(p, t, y, h):
@@ -354,8 +370,8 @@ def batch_solve(
         if lockstep:
             h = jnp.where(alive, bmin(jnp.where(alive, h, jnp.inf)), 0.0)
         _, y1, err = attempt(p, t, y, h)
-        norm = _rms(tuple(e / (atol + rtol * jnp.maximum(jnp.abs(a), jnp.abs(b)))
-                          for e, a, b in zip(err, y, y1)))
+        norm = _rms(tuple(e / (floor + rtol * jnp.maximum(jnp.abs(a), jnp.abs(b)))
+                          for e, a, b, floor in zip(err, y, y1, c["atol"])))
         return dict(c, h=h, attempt=pack_pairs(tuple(y1) + (norm,)))
 
     def step(c):
@@ -404,7 +420,7 @@ def batch_solve(
                                      STATUS.index("non_finite")), status))))
         return prepare(dict(
             t=jnp.where(hit, t, t_new), y=_where(advance, y1, y), dt=dt_new, status=status,
-            nacc=nacc, nrej=nrej, p=p, saved=saved, nxt=nxt))
+            nacc=nacc, nrej=nrej, p=p, saved=saved, nxt=nxt, atol=c["atol"]))
 
     def running(c):
         return c["status"] == _RUNNING

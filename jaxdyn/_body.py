@@ -79,14 +79,36 @@ class AbstractBody(eqx.Module):
         independent exact route, or `None` where none is known. Used by accuracy studies."""
         return None
 
+    def natural_scales(self, t0: Scalar, t1: Scalar, y0: State, effects: tuple,
+                       attitude: bool) -> tuple[dict[str, Array], dict[str, Array]]:
+        """Natural scales of a run from `y0`: the size of each of the body's state variables
+        (one positive scalar each), and reference quantities for the effects' state
+        (`"time"`, `"momentum"`, `"energy"`; see [`jaxdyn.AbstractEffect`][]).
+
+        Error control measures every state variable against `rtol` times the larger of its
+        magnitude and its scale, so the scales make the default tolerances independent of the
+        units (see [`jaxdyn.simulate`][]). Default: each variable's largest initial magnitude,
+        and the time span."""
+        scales = {k: jnp.max(jnp.abs(v)) for k, v in y0.items() if k in self.state_names(y0)}
+        one = jnp.ones((), jnp.result_type(t0))
+        return scales, {"time": jnp.abs(t1 - t0), "momentum": one, "energy": one}
+
+    def state_names(self, y: State) -> tuple[str, ...]:
+        """The body's own variables in a state `y` (effects' variables carry a `label.`)."""
+        return tuple(k for k in y if "." not in k)
+
     def invariant_scale(self, name: str, value: Array) -> Array:
         """Scale against which the drift of invariant `name` is measured (default: its
         initial magnitude). Bodies override it where that can vanish."""
         return jnp.abs(value)
 
     def summary(self, ts, ys: State, valid, t_final, y_final: State,
-                event: Mapping[str, Array]) -> dict[str, Any]:
+                event: Mapping[str, Array], effects: tuple = (),
+                attitude: bool = False) -> dict[str, Any]:
         """Body-specific summary of a run, as arrays (traceable: it runs under `jit`).
+
+        Values that an independent route (a closed form, a quadrature) also gives are repeated
+        under `"reference"` with the same key; the scene adds their `"relative_difference"`.
 
         `valid` masks the saved samples reached by the run. A value that does not exist for
         this run (the impact time of a rod that never lies flat) is returned as `nan`; reports

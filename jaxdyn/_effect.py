@@ -28,6 +28,15 @@ class AbstractEffect(eqx.Module):
     """Whether the effect needs the attitude (and so makes the scene integrate it)."""
     conserves: ClassVar[frozenset[str]] = frozenset()
     """Body invariants that stay conserved when this effect acts (`"energy"`, `"momentum"`)."""
+    parameter_kinds: ClassVar[dict[str, str]] = {}
+    """What each parameter measures (`"momentum"`, `"inertia"`, `"torque"`, `"rate"`), for uses
+    that solve in the scene's natural units (the separatrix finder divides momenta by the
+    sphere's radius and inertia by the largest moment)."""
+    state_kinds: ClassVar[dict[str, str]] = {}
+    """What each of the effect's state variables measures, as one of the body's reference
+    quantities (`"momentum"`, `"energy"`, `"time"`): its error is controlled relative to the
+    larger of its magnitude and that reference (see `AbstractBody.natural_scales`). Variables
+    not listed are measured against their initial magnitude."""
 
     def checks(self) -> list[Check]:
         return []

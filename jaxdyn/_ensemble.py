@@ -22,6 +22,7 @@ from ._chunkstore import ChunkStore, digest
 from ._distributions import AbstractDistribution, name_seed, split_name
 from ._scene import Scene
 from ._simulate import Trajectory, _prepare_run, _simulate
+from ._tolerance import FLOOR, ScaledPIDController
 from ._validation import ParameterError
 
 MODES = ("adaptive", "lockstep", "vmap")
@@ -261,7 +262,7 @@ def _chunk_core(dyn, sharded, *, static, config, axis_name):
     flags = jax.vmap(violations)(params, y0)
     names = tuple(scene.events()) if events else ()
     if mode == "vmap":
-        controller = dfx.PIDController(rtol=rtol, atol=atol)
+        controller = ScaledPIDController(rtol=rtol, atol=atol)
 
         def run(p, y):
             return _simulate(scene_of(p), y, t0, t1, ts, solver=solver, controller=controller,
@@ -293,10 +294,16 @@ def _chunk_core(dyn, sharded, *, static, config, axis_name):
                 fns = scene_of(p).events()
                 return jnp.stack([fns[k](t, y) for k in names])
 
+        def tolerances(p, y):  # each variable against rtol times its natural scale
+            scales, time_scale = ScaledPIDController(rtol=rtol, atol=atol).scales(
+                scene_of(p), t0, t1, y)
+            return {k: FLOOR * rtol * v for k, v in scales.items()}, time_scale
+
+        floors, time_scale = jax.vmap(tolerances)(params, y0)
         r = batch_solve(field, conditions, names, flags, params, y0, t0, t1, ts,
-                        solver=solver, rtol=rtol, atol=atol, max_steps=max_steps,
+                        solver=solver, rtol=rtol, atol=floors, max_steps=max_steps,
                         lockstep=mode == "lockstep", dt0=dt0, axis_name=axis_name,
-                        compact_rows=compact_rows)
+                        compact_rows=compact_rows, time_scale=time_scale)
         status, reason, steps = r.status, r.reason, r.steps
 
         def build(p, y_start, t_final, y_final, ys, event, status, steps, rejected):
@@ -450,7 +457,7 @@ def ensemble(
     keep: bool | Sequence[str] = True,
     solver: dfx.AbstractSolver | None = None,
     rtol: float = 1e-8,
-    atol: float = 1e-10,
+    atol: float | None = None,
     dt0: float | None = None,
     max_steps: int = 100_000,
     mode: str = "adaptive",
@@ -541,8 +548,9 @@ def ensemble(
     # Check the run's settings on one unbatched trajectory, as simulate would.
     example = {k: (v[0] if k in y_batch else v) for k, v in y0.items()}
     example = {k: jnp.asarray(v) for k, v in example.items()}
-    ex_y0, t0, t1, ts, solver, _, dt0 = _prepare_run(
+    ex_y0, t0, t1, ts, solver, controller, dt0 = _prepare_run(
         scene, example, t0, t1, ts, solver, rtol, atol, None, dt0, max_steps)
+    atol = 0.0 if atol is None else atol
     dtype = t0.dtype
     if mode != "vmap":
         if events and scene.body.max_switches > 0:
@@ -599,6 +607,7 @@ def ensemble(
             "t0": float(t0), "t1": float(t1),
             "ts": None if ts is None else np.asarray(ts).tolist(),
             "solver": repr(solver), "rtol": float(rtol), "atol": float(atol),
+            "tolerance": "natural-scales",
             "dt0": None if dt0 is None else float(dt0), "max_steps": int(max_steps),
             "mode": mode, "events": bool(events), "dtype": str(dtype),
             "observe": f"{getattr(observe, '__module__', '')}."

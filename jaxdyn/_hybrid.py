@@ -91,6 +91,7 @@ def simulate_hybrid(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps
     dtype = t0.dtype
     f64 = dtype == jnp.float64
     root_tol = 1e-12 if f64 else 1e-6
+    time_scale = scene.natural_scales(t0, t1, y0)[1]  # event times: absolute in this scale
     fire_tol = 1e-8 if f64 else 1e-3
     ret = jnp.result_type(float)  # diffrax compares event values with a Python float
 
@@ -105,7 +106,9 @@ def simulate_hybrid(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps
         def cond(t, y, args, **kwargs):
             v = values(t, y)
             held = zero & ((t <= t_s) | (v == 0))
-            return jnp.min(jnp.where(held, _BIG, v)).astype(ret)
+            # In units of the scene's time scale, so that the root finder's tolerance (the
+            # same on the time and on the condition) is relative to it in both.
+            return (time_scale * jnp.min(jnp.where(held, _BIG, v))).astype(ret)
 
         return cond
 
@@ -161,7 +164,7 @@ def simulate_hybrid(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps
             # The condition falls through zero across it (flip=True: decreasing), which also
             # serves batch members without an event under `vmap` (diffrax hands them the
             # distance to the end of the step, zero at its upper end).
-            root_finder=optx.Bisection(rtol=root_tol, atol=root_tol, flip=True),
+            root_finder=optx.Bisection(rtol=root_tol, atol=root_tol * time_scale, flip=True),
             direction=False,
         )
         subs = [] if ts is None else [dfx.SubSaveAt(ts=jnp.clip(ts, t_s, t_stop))]

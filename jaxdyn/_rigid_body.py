@@ -3,6 +3,7 @@
 from typing import Any, ClassVar
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
@@ -18,7 +19,7 @@ from ._rotations import (
     quat_to_euler321,
     safe_norm,
 )
-from ._validation import Check, ParameterError, as_float_array
+from ._validation import Check, ParameterError, as_float_array, nonzero_unit
 
 
 def _sum(terms: list) -> Array | None:
@@ -113,7 +114,7 @@ class RigidBody(AbstractBody):
         if attitude:
             q = jnp.array([1.0, 0.0, 0.0, 0.0], dtype) if quaternion is None else quaternion
             q = as_float_array("quaternion", q, (4,), dtype)
-            y["quaternion"] = q / jnp.linalg.norm(q)
+            y["quaternion"] = nonzero_unit("quaternion", q)
         elif quaternion is not None:
             raise ParameterError(
                 "quaternion given, but the scene does not integrate attitude: "
@@ -168,6 +169,27 @@ class RigidBody(AbstractBody):
             dy["quaternion"] = quat_derivative(q, omega) + gain * q
         return dy
 
+    def natural_scales(self, t0, t1, y0, effects, attitude):
+        """The rates are measured against the largest initial rate `W` (one scale for the three
+        components, which exchange magnitude as the body turns); the quaternion against 1.
+        A body starting at rest uses the rate its initial acceleration reaches over the run.
+        References for effects' state: momentum `I_max W` (or the internal momentum, if
+        larger), energy `I_max W^2`, time `1 / W`."""
+        omega = y0["omega"]
+        rate = jnp.max(jnp.abs(omega))
+        accel = jnp.max(jnp.abs(self.derivative(t0, y0, effects, attitude)["omega"]))
+        rate = jnp.where(rate > 0, rate, accel * jnp.abs(t1 - t0))
+        rate = jnp.where(jnp.isfinite(rate) & (rate > 0), rate, 1.0)
+        big = jnp.max(jnp.abs(self.inertia))
+        h = _sum([e.momentum(t0, y0, own, self) for e, own in effects])
+        momentum = big * rate
+        if h is not None:
+            momentum = jnp.maximum(momentum, jnp.max(jnp.abs(h)))
+        scales = {"omega": rate}
+        if attitude:
+            scales["quaternion"] = jnp.ones_like(rate)
+        return scales, {"time": 1 / rate, "momentum": momentum, "energy": momentum * rate}
+
     def _momentum_vector(self, t, y, effects) -> Float[Array, "3"]:
         h = self.body_momentum(y["omega"])
         h_internal = _sum([e.momentum(t, y, own, self) for e, own in effects])
@@ -195,15 +217,20 @@ class RigidBody(AbstractBody):
         if attitude:
             q = y["quaternion"]
             out["quaternion"] = q
-            out["quaternion_norm"] = jnp.linalg.norm(q)
+            out["quaternion_norm"] = safe_norm(q)
             unit = q / out["quaternion_norm"]
             out["dcm"] = quat_to_dcm(unit)
             out["mrp"] = mrp_from_quat(unit)  # the set with |sigma| <= 1 (shadow switched)
             out["euler321"] = quat_to_euler321(unit)
         return out
 
-    def summary(self, ts, ys, valid, t_final, y_final, event) -> dict[str, Any]:
-        return {"omega_final": y_final["omega"]}
+    def summary(self, ts, ys, valid, t_final, y_final, event, effects=(),
+                attitude=False) -> dict[str, Any]:
+        out = {"omega_final": y_final["omega"]}
+        if not effects:  # torque-free: the Jacobi-elliptic closed form is the reference
+            omega0 = jax.tree.map(lambda a: a[0], ys)["omega"]
+            out["reference"] = {"omega_final": self.exact_omega(omega0, t_final - ts[0])}
+        return out
 
     def split_flow(self, axis: int, dt, y: State, effects: tuple, attitude: bool) -> State:
         """Exact flow over `dt` of the kinetic-energy term `(h_k - r_k)^2 / (2 I_k)` alone, for

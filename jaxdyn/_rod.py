@@ -60,6 +60,17 @@ def rod_start(name: str, dtype, attitude: bool, theta, theta_dot, unknown):
     return check_angle_rate(dtype, theta, theta_dot)
 
 
+def rod_scales(length, g, theta, theta_dot):
+    """Natural scales of a rod's motion from `(theta, theta_dot)`: the rate `w = sqrt(g / L)`
+    and the angle `A = max(|theta|, |theta_dot| / w)` (1 for a rod upright at rest, which
+    stays there). A rod released at `theta0 = 1e-12` is so resolved relative to `1e-12`
+    while it starts to fall, whatever the units of `L` and `g`."""
+    w = jnp.sqrt(g / length)
+    angle = jnp.maximum(jnp.abs(theta), jnp.abs(theta_dot) / w)
+    angle = jnp.where(jnp.isfinite(angle) & (angle > 0), angle, 1.0)
+    return w, angle
+
+
 class FallingRod(AbstractBody):
     """A slender rod on a frictionless floor, its lower tip on the floor.
 
@@ -103,6 +114,14 @@ class FallingRod(AbstractBody):
         theta, theta_dot = rod_start("a falling rod", self.length.dtype, attitude, theta,
                                      theta_dot, unknown)
         return {"theta": theta, "theta_dot": theta_dot}
+
+    def natural_scales(self, t0, t1, y0, effects, attitude):
+        """`theta` against the angle `A`, `theta_dot` against `w A` (see `rod_scales`); the
+        time scale is `1 / w`."""
+        w, angle = rod_scales(self.length, self.g, y0["theta"], y0["theta_dot"])
+        energy = self.mass * self.g * self.length
+        return ({"theta": angle, "theta_dot": w * angle},
+                {"time": 1 / w, "momentum": energy / w, "energy": energy})
 
     def angular_acceleration(self, theta, theta_dot):
         """`theta_ddot` from the equation of motion."""
@@ -172,7 +191,8 @@ class FallingRod(AbstractBody):
         # starts flat (cos(pi/2) would round to 6e-17 instead), so that the run ends at once.
         return {"flat": lambda t, y: jnp.pi / 2 - jnp.abs(y["theta"])}
 
-    def summary(self, ts, ys, valid, t_final, y_final, event) -> dict[str, Any]:
+    def summary(self, ts, ys, valid, t_final, y_final, event, effects=(),
+                attitude=False) -> dict[str, Any]:
         flat = event.get("flat", jnp.asarray(False))
         n_over_w = self.outputs(ts, ys, (), False)["normal_force_over_weight"]
         theta0, theta_dot0 = ys["theta"][0], ys["theta_dot"][0]

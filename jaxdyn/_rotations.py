@@ -54,6 +54,7 @@ The quaternion is `q = q3(ψ) ⊗ q2(θ) ⊗ q1(φ)`. Extracted angles lie in `�
 rotation about the vertical into `φ`, with finite values and finite gradients.
 """
 
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
@@ -169,10 +170,22 @@ def safe_norm(
     `sqrt(sum(x**2, axis))`. Elsewhere than at zero its gradient is the usual `x / |x|`.
     """
     x = _asarray(x)
-    sq = jnp.sum(x * x, axis=axis, keepdims=keepdims)
+    # Scaled by the largest component before squaring, so that neither 1e200 nor 1e-200
+    # over- or underflows (the norm is homogeneous: the scale's gradient cancels).
+    big = jax.lax.stop_gradient(jnp.max(jnp.abs(x), axis=axis, keepdims=True))
+    big = jnp.where(jnp.isfinite(big) & (big > 0), big, 1.0)
+    sq = jnp.sum((x / big) ** 2, axis=axis, keepdims=True)
     is_zero = sq == 0
     # Double-`where`: the unselected branch never sees `sqrt(0)`, so no `0 * inf` in the VJP.
-    return jnp.where(is_zero, 0.0, jnp.sqrt(jnp.where(is_zero, 1.0, sq)))
+    norm = big * jnp.where(is_zero, 0.0, jnp.sqrt(jnp.where(is_zero, 1.0, sq)))
+    return norm if keepdims else jnp.squeeze(norm, axis=axis)
+
+
+def unit(x: Float[ArrayLike, "*batch n"], axis: int = -1) -> Float[Array, "*batch n"]:
+    """`x / |x|` along `axis`, overflow- and underflow-safe (see `safe_norm`); a zero vector
+    gives NaN, so callers check for it first."""
+    x = _asarray(x)
+    return x / safe_norm(x, axis=axis, keepdims=True)
 
 
 #

@@ -67,7 +67,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from ._body import AbstractBody
 from ._custom_types import Scalar, State
-from ._rod import check_angle_rate, rod_start
+from ._rod import check_angle_rate, rod_scales, rod_start
 from ._validation import Check, as_float_array, positive_check
 
 STICK, SLIP, FLIGHT = 0.0, 1.0, 2.0
@@ -156,6 +156,18 @@ class RoughFloorRod(AbstractBody):
                      *_RECORDS):
             y[name] = zero
         return y
+
+    def natural_scales(self, t0, t1, y0, effects, attitude):
+        """As the frictionless rod's (`rod_scales`), with the tip's position against `L A` and
+        its velocity against `L w A`; the mode flags and records against 1."""
+        w, angle = rod_scales(self.length, self.g, y0["theta"], y0["theta_dot"])
+        energy = self.mass * self.g * self.length
+        one = jnp.ones_like(angle)
+        scales = {name: one for name in y0}
+        scales.update(theta=angle, theta_dot=w * angle, tip_x=self.length * angle,
+                      tip_y=self.length * angle, tip_vx=self.length * w * angle,
+                      tip_vy=self.length * w * angle, friction_work=energy * angle)
+        return scales, {"time": 1 / w, "momentum": energy / w, "energy": energy}
 
     # -- dynamics of each mode ------------------------------------------------------------------
 
@@ -364,7 +376,8 @@ class RoughFloorRod(AbstractBody):
 
     # -- reporting ------------------------------------------------------------------------------
 
-    def summary(self, ts, ys, valid, t_final, y_final, event) -> dict[str, Any]:
+    def summary(self, ts, ys, valid, t_final, y_final, event, effects=(),
+                attitude=False) -> dict[str, Any]:
         flat = event.get("flat", jnp.asarray(False))
         n_over_w = self.outputs(ts, ys, (), False)["normal_force_over_weight"]
         nan = jnp.asarray(jnp.nan, t_final.dtype)

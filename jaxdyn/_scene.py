@@ -16,6 +16,14 @@ from ._validation import ParameterError
 _SHAPES: dict = {}  # state layouts by scene structure: they never change for a structure
 
 
+def _relative_difference(value, reference):
+    """`max |value - reference| / max |reference|` (NaN where either does not exist)."""
+    value, reference = jnp.asarray(value), jnp.asarray(reference)
+    scale = jnp.max(jnp.abs(reference))
+    diff = jnp.max(jnp.abs(value - reference))
+    return jnp.where(scale > 0, diff / jnp.where(scale > 0, scale, 1.0), diff)
+
+
 class Scene(eqx.Module):
     """A body plus the effects that the scene calls for.
 
@@ -168,6 +176,33 @@ class Scene(eqx.Module):
         `None` where none is known for this scene."""
         return self.body.exact_final(y0, t1, self._own(y0), self.attitude)
 
+    def natural_scales(self, t0: Scalar, t1: Scalar, y0: State) -> tuple[dict[str, Array], Array]:
+        """The natural scale of each state variable for a run from `y0` over `[t0, t1]` (one
+        positive, finite scalar per variable) and the scene's time scale.
+
+        Declared by the body (`AbstractBody.natural_scales`) and, for an effect's own state,
+        by what the variable measures (`AbstractEffect.state_kinds`). Error control measures
+        each variable against `rtol` times the larger of its magnitude and its scale, which
+        makes accuracy at the default tolerances independent of the units."""
+        pairs = self._own(y0)
+        body_scales, ref = self.body.natural_scales(t0, t1, y0, pairs, self.attitude)
+        scales = {}
+        for name, value in y0.items():
+            s = body_scales.get(name)
+            scales[name] = jnp.max(jnp.abs(value)) if s is None else s
+        for label, (e, own) in zip(self.labels, pairs):
+            for k, v in own.items():
+                kind = e.state_kinds.get(k)
+                if kind is not None:
+                    scales[f"{label}.{k}"] = jnp.maximum(scales[f"{label}.{k}"], ref[kind])
+        dtype = jnp.result_type(*jax.tree_util.tree_leaves(y0))
+
+        def positive(s):
+            s = jnp.asarray(s, dtype)
+            return jnp.where(jnp.isfinite(s) & (s > 0), s, jnp.ones((), dtype))
+
+        return {k: positive(v) for k, v in scales.items()}, positive(ref["time"])
+
     def invariants(self, t: Scalar, y: State) -> dict[str, Array]:
         """Energy and momentum-like quantities (conserved only if listed in `conserved`)."""
         return self.body.invariants(t, y, self._own(y), self.attitude)
@@ -258,7 +293,13 @@ class Scene(eqx.Module):
                 event: Mapping[str, Array]) -> dict[str, Any]:
         """Summary of a run as arrays: the body's own keys, and the largest relative drift of
         each conserved invariant over the valid samples (`<name>_rel_error`)."""
-        out = dict(self.body.summary(ts, ys, valid, t_final, y_final, event))
+        y_start = jax.tree.map(lambda a: a[0], ys)
+        out = dict(self.body.summary(ts, ys, valid, t_final, y_final, event,
+                                     effects=self._own(y_start), attitude=self.attitude))
+        if out.get("reference"):
+            out["relative_difference"] = {
+                k: _relative_difference(out[k], ref)
+                for k, ref in out["reference"].items() if k in out}
         inv = jax.vmap(self.invariants)(ts, ys)
         for name in self.conserved:
             v = inv[name]

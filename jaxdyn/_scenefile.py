@@ -4,9 +4,8 @@
 description = "..."
 body = "rigid-body"            # or "falling-rod"
 t1 = 50.0                      # optional: final time, tolerances
-rtol = 1e-10
-atol = 1e-12
-
+rtol = 1e-10                   # atol: an optional absolute floor (default none: the
+                               # tolerance follows each variable's natural scale)
 [parameters]                   # body parameters and initial state, by flat name
 inertia = [1.0, 2.0, 3.0]
 omega0 = [0.3, 0.2, 1.0]
@@ -26,6 +25,8 @@ import tomllib
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
+
+import jax.numpy as jnp
 
 from ._custom_types import State
 from ._effects import AttitudeTracking, ExternalTorque, GravityGradient, RateDamping, Rotor, Wheels
@@ -295,13 +296,18 @@ def load_scene(name_or_path: str, overrides: Mapping[str, Any] | None = None) ->
         else:
             values[key] = _number_or_list(key, value)
 
-    run = {"t1": 10.0, "rtol": 1e-10, "atol": 1e-12}
+    run = {"t1": 10.0, "rtol": 1e-10, "atol": 0.0}
     for key in _RUN_KEYS:
         if key in values:
             v = values[key]
-            if isinstance(v, list) or not (v > 0 and v < float("inf")):
+            if isinstance(v, list):
+                raise ParameterError(f"{key}={format_value(v)}: expected one number")
+            if key == "t1" and not (v > 0 and v < float("inf")):
                 raise ParameterError(f"{key}={format_value(v)}: must be a positive number")
             run[key] = v
+    from ._simulate import check_tolerances
+
+    check_tolerances(run["rtol"], run["atol"], jnp.float64)
 
     if kind == "rigid-body" and isinstance(values["inertia"], list) \
             and len(values["inertia"]) == 9 and not isinstance(values["inertia"][0], list):

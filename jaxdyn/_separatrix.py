@@ -314,6 +314,24 @@ def _solve_all(scene: Scene, momentum, directions):
     return jax.vmap(one)(directions) + (scale,)
 
 
+def _normalised(scene: Scene, momentum) -> tuple[Scene, float, float]:
+    """The scene in units where the largest moment of inertia and the sphere's radius are 1
+    (momenta divided by `H`, inertia by `I_max`), and the rate unit `H / I_max` and inertia
+    unit `I_max` that convert back. The equilibria of the gyrostat equations scale exactly so,
+    and solving in these units keeps every intermediate (rates, their squares, the Hessian of
+    `|H|^2`) near one: inertia of 1e20 or momenta of 1e-300 lose nothing to overflow."""
+    inertia = np.asarray(scene.body.inertia, dtype=np.float64)
+    big = float(np.max(np.abs(inertia)))
+    h = float(momentum)
+    values = {"inertia": scene.body.inertia / jnp.asarray(big, scene.body.inertia.dtype)}
+    for label, e in zip(scene.labels, scene.effects):
+        for name, kind in e.parameter_kinds.items():
+            if kind == "momentum":
+                v = e.parameters()[name]
+                values[f"{label}.{name}"] = v / jnp.asarray(h, v.dtype)
+    return scene.replace(values), h / big, big
+
+
 def find_equilibria(scene: Scene, momentum: float | ArrayLike = 1.0) -> Equilibria:
     r"""All relative equilibria of a conservative scene on the momentum sphere $|\mathbf{H}| = H$.
 
@@ -349,8 +367,9 @@ def find_equilibria(scene: Scene, momentum: float | ArrayLike = 1.0) -> Equilibr
     dtype = _scene_dtype(scene)
     momentum = _positive_scalar("momentum", momentum, dtype)
     directions = jnp.asarray(_fibonacci_sphere(_NUM_STARTS), dtype)
+    unit_scene, rate_unit, _ = _normalised(scene, momentum)
     w, ok, energy, eig, rel, unstable, scale = jax.device_get(
-        _solve_all(scene, momentum, directions)
+        _solve_all(unit_scene, jnp.ones((), dtype), directions)
     )
     tol = _same_point_tol(dtype) * float(scale)
     found: list[int] = []
@@ -365,15 +384,29 @@ def find_equilibria(scene: Scene, momentum: float | ArrayLike = 1.0) -> Equilibr
     degenerate.sort(key=lambda i: tuple(np.round(w[i] / scale, 9)))
     idx = np.asarray(regular, dtype=int)
     ctype = _complex(dtype)
-    return Equilibria(
-        omega=jnp.asarray(w[idx].reshape(-1, 3), dtype),
-        energy=jnp.asarray(energy[idx], dtype),
-        eigenvalues=jnp.asarray(eig[idx].reshape(-1, 2), ctype),
-        unstable_direction=jnp.asarray(unstable[idx].reshape(-1, 3), dtype),
-        momentum=momentum,
-        degenerate=jnp.asarray(w[np.asarray(degenerate, dtype=int)].reshape(-1, 3), dtype),
-        kind=tuple("saddle" if rel[i] > 0 else "center" for i in regular),
-    )
+    kinds = tuple("saddle" if rel[i] > 0 else "center" for i in regular)
+    # Poincare-Hopf: the indices of the isolated equilibria of a flow on the sphere add up to
+    # its Euler characteristic, 2 (+1 for a centre, -1 for a saddle). A circle of degenerate
+    # equilibria (an axisymmetric body) contributes as a band, so only then can the count
+    # differ from centres - saddles = 2.
+    if not degenerate and kinds.count("center") - kinds.count("saddle") != 2:
+        raise RuntimeError(
+            f"find_equilibria found {kinds.count('center')} centres and "
+            f"{kinds.count('saddle')} saddles at momentum={float(momentum):g}; on a sphere "
+            "centres - saddles must be 2, so some equilibria were missed (the body may be "
+            "nearly degenerate at this dtype's precision)"
+        )
+    with np.errstate(over="ignore"):  # unrepresentable values become inf, as they would
+        return Equilibria(
+            omega=jnp.asarray(w[idx].reshape(-1, 3) * rate_unit, dtype),
+            energy=jnp.asarray(energy[idx] * float(momentum) * rate_unit, dtype),
+            eigenvalues=jnp.asarray(eig[idx].reshape(-1, 2) * rate_unit, ctype),
+            unstable_direction=jnp.asarray(unstable[idx].reshape(-1, 3), dtype),
+            momentum=momentum,
+            degenerate=jnp.asarray(
+                w[np.asarray(degenerate, dtype=int)].reshape(-1, 3) * rate_unit, dtype),
+            kind=kinds,
+        )
 
 
 # -- separatrices ------------------------------------------------------------------------------
@@ -449,7 +482,8 @@ def trace_separatrices(
       default).
     - `samples`: samples of the dense output used to locate the return.
     - `rtol`, `atol`: integration tolerances (default: $10^{-10}$ in float64, $10^{-5}$ in
-      float32; `atol` relative to the size of the rates).
+      float32; error control in the natural scales, as [`jaxdyn.simulate`][]; `atol`, an
+      optional floor, relative to the size of the rates).
 
     **Returns:**
 
@@ -472,8 +506,6 @@ def trace_separatrices(
     scale = float(_rate_scale(scene, momentum))
     if rtol is None:
         rtol = 1e-10 if dtype == jnp.float64 else 1e-5
-    if atol is None:
-        atol = 1e-2 * rtol
     rates = np.asarray(equilibria.growth_rate)
 
     branches = []
@@ -486,7 +518,7 @@ def trace_separatrices(
                                   sign * equilibria.unstable_direction[s],
                                   jnp.asarray(step * scale, dtype), momentum)
             traj = simulate(scene, scene.state(omega=w0), t1, ts=ts, rtol=rtol,
-                            atol=atol * scale, dense=True)
+                            atol=None if atol is None else atol * scale, dense=True)
             w = np.asarray(traj.ys["omega"])
             dist = np.min(np.linalg.norm(w[:, None, :] - w_all[saddles][None], axis=-1), axis=1)
             end, returned = _cut(np.asarray(ts), dist / scale, leave=1e-2, arrive=1e-2)
@@ -611,7 +643,17 @@ def critical_rotor_momenta(
     # |roots| <= max |I_i - I_K| |W| < S |W|: starting guesses on both sides of every root.
     guesses = jnp.linspace(-2.0, 2.0, 21, dtype=dtype)
     axis = jnp.asarray(int(spin_axis))  # traced: one compilation for every axis
-    roots, ok, size = jax.device_get(_critical_roots(inertia, axis, rate, guesses))
+    # The roots are h = (I_i - I_K) W: solved for unit rate and largest moment, then scaled
+    # back, so that no rate is squared at its own size (1e160 rad/s would overflow).
+    big = float(np.max(np.abs(np.asarray(inertia))))
+    unit = big * abs(float(rate))
+    if not np.isfinite(unit):
+        raise ParameterError(
+            f"rate={float(rate):g}: the critical momenta (about max(inertia) x rate = "
+            f"{big:g} x {abs(float(rate)):g}) overflow {jnp.dtype(dtype).name}")
+    roots, ok, size = jax.device_get(_critical_roots(
+        inertia / big, axis, jnp.sign(rate), guesses))
+    roots, size = roots * unit, float(size) * unit
     found = np.sort(roots[ok])
     # Roots closer than this (relative to S |W|) are one root: a double root is located only to
     # about the square root of the solver tolerance.

@@ -12,6 +12,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float
 
 from ._custom_types import State
 from ._scene import Scene
+from ._tolerance import ScaledPIDController
 from ._validation import ParameterError, as_float_array, format_value, is_concrete
 
 
@@ -152,20 +153,54 @@ def _check_result(sol, y_final):
     )
 
 
-def _event(scene: Scene, dtype) -> dfx.Event | None:
+def check_tolerances(rtol, atol, dtype) -> tuple:
+    """`rtol` and `atol` as arrays of `dtype`, refused where the dtype cannot reach them or
+    where they are not tolerances (shared by every entry point that integrates). Traced values
+    (a jitted function of `rtol`) are not checked."""
+    atol = 0.0 if atol is None else atol
+    if is_concrete(rtol, atol):
+        eps = float(jnp.finfo(dtype).eps)
+        name = jnp.dtype(dtype).name
+        for field, value in (("rtol", rtol), ("atol", atol)):
+            try:
+                v = float(value)
+            except (TypeError, ValueError):
+                raise ParameterError(f"{field}={value!r}: expected a number") from None
+            if not np.isfinite(v) or v < 0 or v >= 1 or (field == "rtol" and v == 0):
+                allowed = (f"positive, within [{4 * eps:.2g}, 1)" if field == "rtol" else
+                           "within [0, 1) (an absolute floor in the state's units; 0 or None: "
+                           "none)")
+                raise ParameterError(f"{field}={v:g}: must be {allowed}")
+        if float(rtol) < 4 * eps:
+            hint = "" if name == "float64" else (
+                ", or float64 (jax.config.update('jax_enable_x64', True))")
+            raise ParameterError(
+                f"rtol={float(rtol):g}: below what {name} can reach (eps = {eps:.2g}); "
+                f"use rtol within [{4 * eps:.2g}, 1){hint}"
+            )
+    return jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype)
+
+
+def _event(scene: Scene, t0, t1, y0) -> dfx.Event | None:
     fns = scene.events()
     if not fns:
         return None
+    time_scale = scene.natural_scales(t0, t1, y0)[1]
 
     def wrap(f):
-        # diffrax compares the condition with a Python 0.0 in a `lax.cond`: with x64 enabled that
-        # is float64, so the condition is returned in the default float type.
-        return lambda t, y, args, **kwargs: f(t, y).astype(jnp.result_type(float))
+        # The root finder's tolerance applies to the time and to the condition alike: the
+        # condition is measured in units of its initial value and of the scene's time scale,
+        # so both are relative, whatever the units. diffrax compares the condition with a
+        # Python 0.0 in a `lax.cond`: with x64 enabled that is float64, so the condition is
+        # returned in the default float type.
+        c0 = f(t0, y0)
+        k = time_scale / jnp.where(jnp.isfinite(c0) & (c0 > 0), c0, 1.0)
+        return lambda t, y, args, **kwargs: (k * f(t, y)).astype(jnp.result_type(float))
 
-    tol = 1e-12 if dtype == jnp.float64 else 1e-6
+    tol = 1e-12 if t0.dtype == jnp.float64 else 1e-6
     return dfx.Event(
         cond_fn={name: wrap(f) for name, f in fns.items()},
-        root_finder=optx.Newton(rtol=tol, atol=tol),
+        root_finder=optx.Newton(rtol=tol, atol=tol * time_scale),
     )
 
 
@@ -188,6 +223,13 @@ def _prepare_run(scene, y0, t0, t1, ts, solver, rtol, atol, stepsize_controller,
             raise ParameterError(f"t0={float(t0):g}, t1={float(t1):g}: times must be finite")
         if not float(t1) > float(t0):
             raise ParameterError(f"t1={float(t1):g}: must be greater than t0={float(t0):g}")
+        span, tiny = float(t1) - float(t0), float(jnp.finfo(dtype).tiny)
+        resolution = 64 * float(jnp.finfo(dtype).eps) * max(abs(float(t0)), abs(float(t1)))
+        if not span >= max(tiny, resolution):
+            raise ParameterError(
+                f"t1={float(t1):g}: the span t1 - t0 = {span:g} is below what "
+                f"{jnp.dtype(dtype).name} resolves here (at least {max(tiny, resolution):.3g})"
+            )
     if ts is not None:
         ts = as_float_array("ts", ts, None, dtype)
         if ts.ndim != 1 or ts.size == 0:
@@ -209,21 +251,8 @@ def _prepare_run(scene, y0, t0, t1, ts, solver, rtol, atol, stepsize_controller,
             )
         stepsize_controller = dfx.ConstantStepSize()
     if stepsize_controller is None:
-        # Tolerances may be traced (a jitted function of rtol): then they are not checked here.
-        concrete = is_concrete(rtol, atol)
-        for name, value in (("rtol", rtol), ("atol", atol)):
-            if concrete and not (np.isfinite(value) and value > 0):
-                raise ParameterError(f"{name}={value!r}: must be positive and finite")
-        eps = float(jnp.finfo(dtype).eps)
-        if concrete and rtol < 4 * eps:
-            raise ParameterError(
-                f"rtol={rtol:g}: below what {jnp.dtype(dtype).name} can reach (eps = {eps:.2g});"
-                f" use rtol >= {4 * eps:.2g}, or float64 "
-                "(jax.config.update('jax_enable_x64', True))"
-            )
-        stepsize_controller = dfx.PIDController(
-            rtol=jnp.asarray(rtol, dtype), atol=jnp.asarray(atol, dtype)
-        )
+        rtol, atol = check_tolerances(rtol, atol, dtype)
+        stepsize_controller = ScaledPIDController(rtol=rtol, atol=atol)
     dt0 = None if dt0 is None else jnp.asarray(dt0, dtype)
     return y0, t0, t1, ts, solver, stepsize_controller, dt0
 
@@ -237,7 +266,7 @@ def simulate(
     ts: ArrayLike | None = None,
     solver: dfx.AbstractSolver | None = None,
     rtol: float = 1e-8,
-    atol: float = 1e-10,
+    atol: float | None = None,
     stepsize_controller: dfx.AbstractStepSizeController | None = None,
     dt0: float | None = None,
     max_steps: int = 100_000,
@@ -258,7 +287,17 @@ def simulate(
     - `ts`: times at which to save the state (within `[t0, t1]`, increasing). By default the
       state is saved at `t0` and at the final time.
     - `solver`: any diffrax solver (default `diffrax.Tsit5()`).
-    - `rtol`, `atol`: tolerances of the default PID step-size controller.
+    - `rtol`: relative tolerance of the default PID step-size controller, within
+      `[4 eps, 1)`. Each state variable is measured against `rtol` times the larger of its
+      magnitude and its *natural scale*, declared by the body and the effects from the
+      initial state and the parameters (a rigid body's rates against the largest initial
+      rate, the quaternion against 1, the rod's angle against
+      `max(|theta0|, |theta_dot0| / sqrt(g/L))`, a wheel's momentum against the body's;
+      see `Scene.natural_scales`). So the default settings give the same relative accuracy
+      in any units: rates in rad/s or rad/day, inertia in kg m^2 or g mm^2, a rod released
+      at `1e-15` rad or at 1.5 rad. Event times are located to `1e-12` relative (float64).
+    - `atol`: an optional absolute floor, in the state's own units, within `[0, 1)`
+      (default `None`: no floor beyond the natural scales).
     - `stepsize_controller`: any diffrax controller (overrides `rtol`, `atol`); use
       `diffrax.ConstantStepSize()` with `dt0` for fixed steps (the default for solvers without
       error estimates, such as [`jaxdyn.RotationSplitting`][]).
@@ -303,6 +342,8 @@ def _simulate(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps, adjo
     # checks=False (ensembles): failures are left in `Trajectory.result` instead of raised.
     if checks:
         y0 = scene.check(y0)
+    if isinstance(controller, ScaledPIDController):
+        controller = controller.with_floor(scene, t0, t1, y0)
     if events and scene.body.max_switches > 0:
         from ._hybrid import simulate_hybrid
 
@@ -312,7 +353,7 @@ def _simulate(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps, adjo
     dtype = t0.dtype
     first = dfx.SubSaveAt(t0=True) if ts is None else dfx.SubSaveAt(ts=ts)
     saveat = dfx.SaveAt(subs=[first, dfx.SubSaveAt(t1=True)], dense=dense)
-    event = _event(scene, dtype) if events else None
+    event = _event(scene, t0, t1, y0) if events else None
     sol = dfx.diffeqsolve(
         dfx.ODETerm(scene.vector_field),
         solver,

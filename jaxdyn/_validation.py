@@ -82,3 +82,17 @@ def finite_check(field: str, x) -> Check:
 
 def positive_check(field: str, x) -> Check:
     return (field, x, ~((x > 0) & jnp.isfinite(x)), "must be positive and finite")
+
+
+def nonzero_unit(field: str, x, axis: int = -1):
+    """`x / |x|` (overflow-safe), refusing a zero vector (or a zero row) by name when `x` is
+    concrete; a traced zero vector gives NaN, caught by the scene's finiteness checks."""
+    from ._rotations import unit
+
+    if is_concrete(x):
+        a = np.asarray(x)
+        zero = ~np.any(a != 0, axis=axis)
+        if np.any(zero):
+            raise ParameterError(message(field, x, "must be nonzero (it is normalised to a "
+                                         "unit vector)"))
+    return unit(x, axis=axis)

@@ -39,3 +39,8 @@ def central_difference(f, x, eps=1e-6):
         e[i] = eps * max(1.0, abs(x[i]))
         g[i] = (float(f(jnp.asarray(x + e))) - float(f(jnp.asarray(x - e)))) / (2 * e[i])
     return g
+
+# The default relative tolerance of `jd.simulate`, and how far (as a multiple of it) a
+# well-conditioned result may lie from an exact reference at the defaults (issue 17).
+DEFAULT_RTOL = 1e-8
+WITHIN_RTOL = 10

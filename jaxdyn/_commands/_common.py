@@ -1,7 +1,13 @@
 """Helpers shared by subcommands."""
 
 import json
+import sys
 from typing import Any
+
+PROMISE = 100
+"""A result more than `PROMISE * rtol` (relative) from its independent reference is reported:
+the default error control keeps the local error per step within `rtol` of each variable's
+scale, and the global error of a well-conditioned run within a few times that."""
 
 
 def enable_x64() -> None:
@@ -62,3 +68,20 @@ def emit(out: dict[str, Any], as_json: bool, title: str = "") -> None:
         print(title)
     for key, value in out.items():
         print(f"  {key}: {fmt(value)}")
+
+
+def warn_on_disagreement(report: dict[str, Any], rtol: float) -> list[str]:
+    """Warn on stderr for every value of a run's report that differs from its independent
+    reference (`report["relative_difference"]`) by more than the tolerances promise."""
+    warnings = []
+    for key, diff in (report.get("relative_difference") or {}).items():
+        if diff is not None and diff > PROMISE * rtol:
+            warnings.append(
+                f"jaxdyn: warning: {key} differs from its reference by {diff:.2g} (relative), "
+                f"more than rtol={rtol:g} promises ({PROMISE} x rtol = {PROMISE * rtol:.2g}): "
+                "the run may be ill-conditioned (near a separatrix, a long horizon); tighten "
+                "rtol with --set rtol=... to check"
+            )
+    for line in warnings:
+        print(line, file=sys.stderr)
+    return warnings

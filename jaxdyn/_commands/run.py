@@ -3,7 +3,7 @@
 import time
 from typing import Any
 
-from ._common import add_scene_arguments, emit, enable_x64, parse_sets
+from ._common import add_scene_arguments, emit, enable_x64, parse_sets, warn_on_disagreement
 
 HELP = "simulate a scene and summarise it"
 
@@ -45,6 +45,7 @@ def run(args) -> int:
     traj = go()
     run_s = time.perf_counter() - t0
     report = traj.report()
+    warn_on_disagreement(report, spec.rtol)
     out: dict[str, Any] = {
         "scene": spec.name,
         "body": spec.scene.body.kind,

@@ -22,6 +22,7 @@ class Rotor(AbstractEffect):
 
     kind: ClassVar[str] = "rotor"
     parameter_names: ClassVar[tuple[str, ...]] = ("momentum",)
+    parameter_kinds: ClassVar[dict[str, str]] = {"momentum": "momentum"}
     conserves: ClassVar[frozenset[str]] = frozenset({"energy", "momentum"})
 
     def __init__(self, momentum: Float[ArrayLike, "3"]):

@@ -22,7 +22,14 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from .._effect import AbstractEffect
-from .._validation import Check, ParameterError, as_float_array, finite_check, positive_check
+from .._validation import (
+    Check,
+    ParameterError,
+    as_float_array,
+    finite_check,
+    nonzero_unit,
+    positive_check,
+)
 
 
 class Wheels(AbstractEffect):
@@ -56,6 +63,7 @@ class Wheels(AbstractEffect):
 
     kind = "wheels"
     parameter_names = ("axes", "inertia", "max_torque", "max_speed", "damping")
+    state_kinds = {"momentum": "momentum", "work": "energy", "dissipated": "energy"}
 
     def __init__(
         self,
@@ -73,7 +81,7 @@ class Wheels(AbstractEffect):
             raise ParameterError(f"wheels.axes has shape {axes.shape}: expected (N, 3)")
         n = axes.shape[0]
         dtype = axes.dtype
-        self.axes = axes / jnp.linalg.norm(axes, axis=1, keepdims=True)
+        self.axes = nonzero_unit("wheels.axes", axes, axis=1)
 
         def vector(name, value):
             if value is None:
@@ -223,7 +231,7 @@ class AttitudeTracking(eqx.Module):
 
     def __init__(self, target: Float[ArrayLike, "4"], kp: ArrayLike, kd: ArrayLike):
         target = as_float_array("attitude_tracking.target", target, (4,))
-        self.target = target / jnp.linalg.norm(target)
+        self.target = nonzero_unit("attitude_tracking.target", target)
         self.kp = as_float_array("attitude_tracking.kp", kp, (), target.dtype)
         self.kd = as_float_array("attitude_tracking.kd", kd, (), target.dtype)
 

@@ -44,7 +44,8 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .._custom_types import State
 from .._scene import Scene
-from .._simulate import simulate
+from .._simulate import check_tolerances, simulate
+from .._tolerance import ScaledPIDController
 from .._validation import ParameterError, format_value
 from ._parameterisation import AbstractParameterisation, Unconstrained
 
@@ -91,7 +92,7 @@ class _Problem(eqx.Module):
         traj = simulate(
             scene, y0, ts[-1], t0=ts[0], ts=ts,
             # A controller built here, so that the tolerances are arrays (no recompilation).
-            stepsize_controller=dfx.PIDController(rtol=self.rtol, atol=self.atol),
+            stepsize_controller=ScaledPIDController(rtol=self.rtol, atol=self.atol),
             max_steps=self.max_steps, adjoint=dfx.ForwardMode(), events=False,
         )
         out = jax.vmap(scene.outputs)(traj.ts, traj.ys)
@@ -551,6 +552,7 @@ def _setup(scene, ts, data, parameters, initial, y0, sigma, rtol, atol, max_step
         scene = scene.replace(recast)
     ts, obs = _prepare_data(shapes, ts, data, outputs, dtype)
     n_samples = ts.size
+    rtol, atol = check_tolerances(rtol, atol, dtype)
 
     if y0 is None:
         observed = {k: obs[k][0] for k in outputs if k in state_shapes}
@@ -582,7 +584,7 @@ def _setup(scene, ts, data, parameters, initial, y0, sigma, rtol, atol, max_step
         scene=scene, y0=y0, names=names, is_state=tuple(n in initial for n in names),
         maps=maps, sizes=tuple(m.size() for m in maps), outputs=outputs,
         sigma=tuple(jnp.asarray(sigma.get(k, 1.0), dtype) for k in outputs),
-        rtol=jnp.asarray(rtol, dtype), atol=jnp.asarray(atol, dtype), max_steps=max_steps,
+        rtol=rtol, atol=atol, max_steps=max_steps,
         dtype=dtype,
     )
     return _Setup(problem, u0, components, ts, obs, jnp.asarray(ts_p),
@@ -609,7 +611,7 @@ def fit(
     horizons: Sequence[float] = (0.25, 0.5, 1.0),
     tol: float | None = None,
     rtol: float = 1e-8,
-    atol: float = 1e-10,
+    atol: float | None = None,
     max_steps: int = 100_000,
     identifiability_tol: float | None = None,
     notes: Mapping[str, str] | None = None,
