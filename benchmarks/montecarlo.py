@@ -375,7 +375,7 @@ def free_body(n, chunk, repeats, rounds, scipy_n, rng):
 
     def ens(mode, everything):
         observe = None if everything else rates
-        return jd.ensemble(scene, {"omega": w0}, T_FREE, rtol=RTOL, atol=ATOL, mode=mode,
+        return jd.ensemble(scene, {"omega": w0}, T_FREE, rtol=RTOL, mode=mode,
                            chunk_size=chunk, observe=observe)
 
     out = {"problem": "torque-free body, rates only, t in [0, 20]", "n": n}
@@ -396,7 +396,7 @@ def rod(n, chunk, repeats, rounds, scipy_n, rng):
     def ens(mode, everything):
         observe = None if everything else fall_time
         return jd.ensemble(scene, {"theta": theta0, "theta_dot": rate0}, T_ROD, rtol=RTOL,
-                           atol=ATOL, mode=mode, chunk_size=chunk, observe=observe)
+                           mode=mode, chunk_size=chunk, observe=observe)
 
     out = {"problem": "falling rod to impact (terminating event)", "n": n,
            "lean_steps_are": "steps per unit of simulated time"}
@@ -426,7 +426,7 @@ def ratios(block):
 def memory_probe(n, chunk):
     scene = jd.Scene(jd.RigidBody(inertia=list(INERTIA)))
     res = jd.ensemble(scene, scene.state(omega=[0.1, 1.0, 0.1]), T_FREE, n=n,
-                      vary={"omega": jd.Normal([0.1, 1.0, 0.1], 0.05)}, rtol=RTOL, atol=ATOL,
+                      vary={"omega": jd.Normal([0.1, 1.0, 0.1], 0.05)}, rtol=RTOL,
                       chunk_size=chunk, keep=False)
     assert res.completed == n
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # MiB on Linux

@@ -21,7 +21,7 @@ from ._batch_solve import STATUS, STATUS_HELP, batch_solve, tableau
 from ._chunkstore import ChunkStore, digest
 from ._distributions import AbstractDistribution, name_seed, split_name
 from ._scene import Scene
-from ._simulate import Trajectory, _prepare_run, _simulate
+from ._simulate import Trajectory, _prepare_run, _simulate, check_tolerances
 from ._tolerance import FLOOR, ScaledPIDController
 from ._validation import ParameterError
 
@@ -456,7 +456,7 @@ def ensemble(
     observe: Callable[[Trajectory], Mapping[str, jax.Array]] | None = None,
     keep: bool | Sequence[str] = True,
     solver: dfx.AbstractSolver | None = None,
-    rtol: float = 1e-8,
+    rtol: float | None = None,
     atol: float | None = None,
     dt0: float | None = None,
     max_steps: int = 100_000,
@@ -550,8 +550,8 @@ def ensemble(
     example = {k: jnp.asarray(v) for k, v in example.items()}
     ex_y0, t0, t1, ts, solver, controller, dt0 = _prepare_run(
         scene, example, t0, t1, ts, solver, rtol, atol, None, dt0, max_steps)
-    atol = 0.0 if atol is None else atol
     dtype = t0.dtype
+    rtol, atol = (float(x) for x in check_tolerances(rtol, atol, dtype))
     if mode != "vmap":
         if events and scene.body.max_switches > 0:
             raise ParameterError(

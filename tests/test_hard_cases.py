@@ -409,6 +409,57 @@ def test_step_budget_and_stiffness():
     assert f["stiff_implicit_steps"] < 2000 and f["stiff_implicit_final_norm"] < 1e-10
 
 
+
+# -- 12. every row at the default settings (issue 17) ----------------------------------------------
+
+
+@functools.cache
+def case_defaults():
+    """The rows above with `simulate`'s defaults (rtol 1e-8, error control in the natural
+    scales, no atol): what a new user gets without choosing a tolerance."""
+    out = {}
+    for theta0 in (1e-12, 1e-15):
+        traj = jd.simulate(ROD_SCENE, ROD_SCENE.state(theta=theta0), 30.0)
+        out[f"rod_{theta0:g}"] = abs(float(traj.t_final) / float(ROD.fall_time(theta0)) - 1)
+    traj = jd.simulate(ROD_SCENE, ROD_SCENE.state(theta=0.0), 100.0)
+    out["rod_upright_theta"] = float(traj.y_final["theta"])
+    for name, theta0, rate in (("initial_rate", 0.1, 2.0), ("towards_upright", 0.1, -4.0),
+                               ("near_flat", np.pi / 2 - 1e-6, 0.0)):
+        traj = jd.simulate(ROD_SCENE, ROD_SCENE.state(theta=theta0, theta_dot=rate), 10.0)
+        out[f"rod_{name}"] = abs(float(traj.t_final) / float(ROD.fall_time(theta0, rate)) - 1)
+    lam = np.sqrt((3 - 2) * (2 - 1) / (1 * 3)) * 2.0
+    for eps in (1e-3, 1e-6, 1e-9):
+        omega0 = jnp.array([eps, 2.0, eps])
+        t_max = 1.2 * float(jd.torque_free_period(INERTIA, omega0)) / 2
+        exact = _first_zero(lambda t: jd.torque_free_omega(INERTIA, omega0, t)[..., 1], t_max)
+        traj = jd.simulate(FREE, FREE.state(omega=omega0), t_max, dense=True)
+        sim = _first_zero(lambda t: traj.evaluate(jnp.asarray(t))["omega"][:, 1], t_max)
+        out[f"flip_{eps:g}"] = abs(sim - exact)
+        out[f"flip_{eps:g}_bound"] = 1e-8 * 2.0 / (lam * eps)
+    for name, inertia in (("flat_plate", (1.0, 1e3, 1001.0)), ("needle", (1e-3, 1.0, 1.0005))):
+        scene = jd.Scene(jd.RigidBody(inertia))
+        omega0 = jnp.array([0.2, 0.1, 0.05])
+        traj = jd.simulate(scene, scene.state(omega=omega0), 10.0)
+        exact = _scipy_euler(inertia, np.asarray(omega0), 10.0)[-1]
+        out[name] = float(np.max(np.abs(traj.y_final["omega"] - exact)) / 0.2)
+    f32 = jnp.float32
+    rod32 = jd.FallingRod(length=f32(1.0), mass=f32(1.0), g=f32(9.81))
+    traj = jd.simulate(jd.Scene(rod32), jd.Scene(rod32).state(theta=f32(0.1)), 5.0)
+    out["float32_rod"] = abs(float(traj.t_final) / float(ROD.fall_time(0.1)) - 1)
+    return out
+
+
+def test_hard_cases_at_the_defaults():
+    f = case_defaults()
+    target = 10 * 1e-8  # within 10x of the default rtol
+    for key in ("rod_1e-12", "rod_1e-15", "rod_initial_rate", "rod_towards_upright",
+                "rod_near_flat", "flat_plate", "needle"):
+        assert f[key] < target, key
+    assert f["rod_upright_theta"] == 0.0
+    for eps in ("0.001", "1e-06", "1e-09"):  # ill-conditioned: within the conditioning bound
+        assert f[f"flip_{eps}"] < f[f"flip_{eps}_bound"]
+    assert f["float32_rod"] < 1e-5
+
 CASES = {
     "1_rod_tiny_angle": case_tiny_angle,
     "2_rod_upright": case_upright,
@@ -421,6 +472,7 @@ CASES = {
     "9_gradients": case_gradients,
     "10_float32": case_float32,
     "11_budget_and_stiffness": case_budget_and_stiffness,
+    "12_defaults": case_defaults,
 }
 
 

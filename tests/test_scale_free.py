@@ -8,7 +8,6 @@ import subprocess
 import sys
 
 import diffrax as dfx
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest

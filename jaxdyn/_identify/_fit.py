@@ -610,7 +610,7 @@ def fit(
     max_iter: int = 200,
     horizons: Sequence[float] = (0.25, 0.5, 1.0),
     tol: float | None = None,
-    rtol: float = 1e-8,
+    rtol: float | None = None,
     atol: float | None = None,
     max_steps: int = 100_000,
     identifiability_tol: float | None = None,
