@@ -45,6 +45,7 @@ from ._identify import (
     fit as fit,
 )
 from ._inertia import inertia_tensor as inertia_tensor, principal_axes as principal_axes
+from ._outcome import Outcome as Outcome
 from ._polhode import (
     polhode as polhode,
     separatrix_condition as separatrix_condition,

@@ -28,26 +28,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._outcome import MESSAGES, NAMES, SUCCESS, Outcome
+from ._tolerance import underflow_step
 from ._validation import ParameterError
 
-STATUS = (
-    "completed",  # reached t1
-    "event",  # a terminating event ended the run (a success)
-    "max_steps_reached",
-    "step_size_underflow",
-    "non_finite",
-    "invalid_input",  # a parameter or initial value failed the scene's checks
-)
-"""Status codes of batched runs, by index."""
+STATUS = NAMES
+"""Status codes of batched runs, by index: the codes of `jaxdyn.Outcome`."""
 
-STATUS_HELP = {
-    "max_steps_reached": "the step budget max_steps ran out before t1: increase max_steps or "
-    "loosen rtol/atol",
-    "step_size_underflow": "the step size fell to round-off: the solution may be singular, or "
-    "the problem stiff",
-    "non_finite": "the state or its derivative became non-finite (NaN or inf)",
-    "invalid_input": "a parameter or initial value failed the scene's checks",
-}
+STATUS_HELP = {o.name: MESSAGES[o] for o in Outcome if o not in SUCCESS}
 
 _SAFETY, _FACTOR_MIN, _FACTOR_MAX = 0.9, 0.2, 10.0
 _RUNNING = -1  # the status of a trajectory still being integrated
@@ -343,7 +331,7 @@ def batch_solve(
     # Every array in the carry has the batch as its last axis, so that the batch can be
     # compacted by one gather.
     carry = dict(t=tvec, y=y0, dt=dt, status=status, nacc=zeros, nrej=zeros, p=params,
-                 saved=saved, nxt=nxt, atol=atol)
+                 saved=saved, nxt=nxt, atol=atol, T=time_scale)
 
     # -- steps ----------------------------------------------------------------------------------
     def attempt(p, t, y, h):
@@ -409,7 +397,7 @@ def batch_solve(
         fs = attempt(p, t, y, h)[0] if ts is not None else None
         saved, nxt = save(c["saved"], c["nxt"], advance, t_new, lambda s: interpolate(
             t, t_new, y, y1, fs, h, jnp.full(t.shape, s)))
-        underflow = alive & ~accept & (dt_new <= 4 * eps * jnp.maximum(jnp.abs(t), 1.0))
+        underflow = alive & ~accept & (dt_new <= underflow_step(t, c["T"], eps))
         nacc = c["nacc"] + accept.astype(jnp.int32)
         nrej = c["nrej"] + (alive & ~accept).astype(jnp.int32)
         out_of_steps = alive & ~reached & ~hit & (nacc + nrej >= max_steps)
@@ -420,7 +408,7 @@ def batch_solve(
                                      STATUS.index("non_finite")), status))))
         return prepare(dict(
             t=jnp.where(hit, t, t_new), y=_where(advance, y1, y), dt=dt_new, status=status,
-            nacc=nacc, nrej=nrej, p=p, saved=saved, nxt=nxt, atol=c["atol"]))
+            nacc=nacc, nrej=nrej, p=p, saved=saved, nxt=nxt, atol=c["atol"], T=c["T"]))
 
     def running(c):
         return c["status"] == _RUNNING

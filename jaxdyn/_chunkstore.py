@@ -11,6 +11,7 @@ its checksum is reported and computed again.
 import hashlib
 import json
 import os
+import socket
 import tempfile
 import warnings
 from pathlib import Path
@@ -33,8 +34,14 @@ def digest(arrays: dict[str, np.ndarray]) -> str:
     return h.hexdigest()
 
 
+_HOST = socket.gethostname().replace(".", "_")
+
+
 def _atomic_write(path: Path, write) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    # The temporary name carries the writer's host and process, so that another process
+    # opening the same directory can tell a write in progress from one that died.
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.{_HOST}.{os.getpid()}.",
+                               suffix=".tmp")
     try:
         with os.fdopen(fd, "wb") as f:
             write(f)
@@ -77,10 +84,33 @@ class ChunkStore:
         else:
             _atomic_write(path, lambda f: f.write(
                 json.dumps(manifest, indent=1, sort_keys=True, default=str).encode()))
-        # Temporary files of writes that never finished.
-        for stale in self.directory.glob(".chunk-*.tmp"):
-            stale.unlink(missing_ok=True)
+        for entry in self.directory.glob("chunk-*.npz"):
+            if not entry.is_file():
+                raise ParameterError(
+                    f"out={str(directory)!r}: {entry.name} is not a chunk file (a "
+                    f"{'directory' if entry.is_dir() else 'special file'}): move it away or "
+                    "use another directory")
+        self._remove_dead_temporaries()
         self.recomputed: list[int] = []
+
+    def _remove_dead_temporaries(self) -> None:
+        """Temporary files of writes that died: only those of a process of this host that no
+        longer runs (another process, here or on another host, may be writing into this
+        directory at this moment). Each removal is named in a warning."""
+        for tmp in self.directory.glob(".chunk-*.tmp"):
+            parts = tmp.name.split(".")
+            # .chunk-NNNNNN.npz.<host>.<pid>.<random>.tmp
+            if len(parts) < 6 or parts[-4] != _HOST or not parts[-3].isdigit():
+                continue
+            pid = int(parts[-3])
+            if pid == os.getpid() or _alive(pid):
+                continue
+            try:
+                tmp.unlink()
+            except FileNotFoundError:
+                continue
+            warnings.warn(f"removed {tmp}: the unfinished write of process {pid}, which no "
+                          "longer runs", stacklevel=3)
 
     def path(self, index: int) -> Path:
         return self.directory / f"chunk-{index:06d}.npz"
@@ -108,7 +138,9 @@ class ChunkStore:
         except Exception as e:  # any unreadable file (truncated zip, bad header) is recomputed
             why = f"unreadable ({type(e).__name__}: {e})"
         else:
-            if meta.get("fingerprint") != self.fingerprint or meta.get("index") != index:
+            if not isinstance(meta, dict):
+                why = "not a jaxdyn chunk file (its meta is not a record)"
+            elif meta.get("fingerprint") != self.fingerprint or meta.get("index") != index:
                 why = "written by another run"
             elif meta.get("sha256") != digest(arrays):
                 why = "checksum mismatch (corrupt)"
@@ -118,3 +150,13 @@ class ChunkStore:
             self.recomputed.append(index)
             return None
         return arrays
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True

@@ -20,6 +20,7 @@ from . import _batch_solve
 from ._batch_solve import STATUS, STATUS_HELP, batch_solve, tableau
 from ._chunkstore import ChunkStore, digest
 from ._distributions import AbstractDistribution, name_seed, split_name
+from ._outcome import from_diffrax, to_diffrax
 from ._scene import Scene
 from ._simulate import Trajectory, _prepare_run, _simulate, check_tolerances
 from ._tolerance import FLOOR, ScaledPIDController
@@ -270,18 +271,11 @@ def _chunk_core(dyn, sharded, *, static, config, axis_name):
                              adjoint=dfx.RecursiveCheckpointAdjoint(), events=events,
                              meter=dfx.NoProgressMeter(), dense=False, checks=False)
 
-        trajs = jax.vmap(run)(params, y0)
-        R = dfx.RESULTS
-        res = trajs.result
+        trajs = eqx.filter_vmap(run)(params, y0)
         finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x.reshape(m, -1)), axis=1)
                                     for x in jax.tree.leaves(trajs.y_final)]), axis=0)
-        status = jnp.select(
-            [res == R.successful, res == R.event_occurred, res == R.max_steps_reached,
-             res == R.dt_min_reached],
-            [0, 1, 2, 3], 4).astype(jnp.int32)
-        status = jnp.where((status <= 1) & ~finite, STATUS.index("non_finite"), status)
         invalid = jnp.any(flags, axis=1)
-        status = jnp.where(invalid, STATUS.index("invalid_input"), status)
+        status = jax.vmap(from_diffrax)(trajs.result, finite, invalid)
         reason = jnp.argmax(flags, axis=1).astype(jnp.int32)
         steps = trajs.stats["num_accepted_steps"]
     else:
@@ -313,17 +307,14 @@ def _chunk_core(dyn, sharded, *, static, config, axis_name):
             else:
                 ts_i = jnp.where(ts <= t_final, ts, jnp.inf)
                 ys_i = ys
-            R = dfx.RESULTS
-            result = R.where(status == 0, R.successful, R.where(
-                status == 1, R.event_occurred, R.where(
-                    status == 2, R.max_steps_reached, R.dt_min_reached)))
             return Trajectory(scene=scene_of(p), ts=ts_i, ys=ys_i, t_final=t_final,
-                              y_final=y_final, event=event, result=result,
+                              y_final=y_final, event=event, result=to_diffrax(status),
+                              outcome=status,
                               stats={"num_accepted_steps": steps, "num_rejected_steps": rejected})
 
-        trajs = jax.vmap(build)(params, y0, r.t_final, r.y_final, r.ys, r.event, r.status,
+        trajs = eqx.filter_vmap(build)(params, y0, r.t_final, r.y_final, r.ys, r.event, r.status,
                                 r.steps, r.rejected)
-    observed = jax.vmap(observe)(trajs)
+    observed = eqx.filter_vmap(observe)(trajs)
     if not isinstance(observed, Mapping):
         raise ParameterError(f"observe returned {type(observed).__name__}: expected a dict of "
                              "arrays")
@@ -610,6 +601,8 @@ def ensemble(
             "tolerance": "natural-scales",
             "dt0": None if dt0 is None else float(dt0), "max_steps": int(max_steps),
             "mode": mode, "events": bool(events), "dtype": str(dtype),
+            # the results' last bits depend on how a chunk is split across devices
+            "devices": d, "platform": devices[0].platform,
             "observe": f"{getattr(observe, '__module__', '')}."
                        f"{getattr(observe, '__qualname__', repr(observe))}",
         }

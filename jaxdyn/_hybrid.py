@@ -32,7 +32,6 @@ that dips below zero and comes back within one step is missed. This matters only
 tangency (a friction ratio whose peak just touches `mu_s`); tighter tolerances resolve it.
 """
 
-from types import SimpleNamespace
 
 import diffrax as dfx
 import equinox as eqx
@@ -82,7 +81,8 @@ class HybridInterpolation(eqx.Module):
 def simulate_hybrid(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps, adjoint,
                     meter, dense, checks=True):
     """The body of `jaxdyn.simulate` for hybrid bodies (traced inside its `jit`)."""
-    from ._simulate import _FAILURES, Trajectory, _check_result
+    from ._outcome import MESSAGES, Outcome, from_diffrax
+    from ._simulate import Trajectory, _check_result, _finite
 
     body = scene.body
     fns = scene.events()
@@ -244,9 +244,9 @@ def simulate_hybrid(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps
     t_final = c["t"]
     y_final = c["y"]
     if checks:
-        y_final = _check_result(SimpleNamespace(result=c["result"]), y_final)
+        y_final, _ = _check_result(c["result"], y_final)
         y_final = eqx.error_if(y_final, c["steps"] > max_steps,
-                               dict(_FAILURES)["max_steps_reached"])
+                               MESSAGES[Outcome.max_steps_reached])
         y_final = eqx.error_if(
             y_final, ~c["done"],
             f"the run needed more than {body.max_switches} mode switches before t1 (the most "
@@ -283,6 +283,7 @@ def simulate_hybrid(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps
         y_final=y_final,
         event=dict(zip(names, c["ended_by"])),
         result=result,
+        outcome=from_diffrax(result, _finite(y_final)),
         stats={
             "num_steps": c["steps"],
             "num_accepted_steps": c["accepted"],

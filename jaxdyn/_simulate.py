@@ -8,9 +8,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
-from jaxtyping import Array, ArrayLike, Bool, Float
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._custom_types import State
+from ._outcome import MESSAGES, NAMES, Outcome, from_diffrax, is_success
 from ._scene import Scene
 from ._tolerance import ScaledPIDController
 from ._validation import ParameterError, as_float_array, format_value, is_concrete
@@ -18,6 +19,9 @@ from ._validation import ParameterError, as_float_array, format_value, is_concre
 
 class Trajectory(eqx.Module):
     """The result of [`jaxdyn.simulate`][]: states at the saved times, and the final state.
+
+    `outcome` is how the run ended, a [`jaxdyn.Outcome`][] code (`traj.outcome_name` gives its
+    name); `result` is diffrax's own result.
 
     Derived outputs are computed on demand from the scene: `traj.energy`, `traj.omega`,
     `traj.normal_force`... (any name in `traj.output_names`). Saved times after a terminating
@@ -31,6 +35,7 @@ class Trajectory(eqx.Module):
     y_final: State
     event: dict[str, Bool[Array, ""]]
     result: dfx.RESULTS
+    outcome: Int[Array, ""]
     stats: dict[str, Any]
     interpolation: dfx.DenseInterpolation | None = None
 
@@ -48,6 +53,11 @@ class Trajectory(eqx.Module):
         if self.interpolation is None:
             raise ParameterError("resample needs the dense output: simulate(..., dense=True)")
         return _resample(self, num)
+
+    @property
+    def outcome_name(self) -> str:
+        """The name of `outcome` (`"completed"`, `"event"`, `"max_steps_reached"`...)."""
+        return NAMES[int(self.outcome)]
 
     @property
     def valid(self) -> Bool[Array, " times"]:
@@ -120,37 +130,17 @@ def _outputs(scene: Scene, ts, ys) -> dict[str, Array]:
     return jax.vmap(scene.outputs)(ts, ys)
 
 
-_FAILURES = (
-    ("max_steps_reached",
-     "the step budget `max_steps` ran out before t1: increase max_steps or loosen rtol/atol; "
-     "if the steps became tiny the problem may be stiff: use an implicit solver such as "
-     "diffrax.Kvaerno5()"),
-    ("dt_min_reached",
-     "the step size fell below its minimum: the solution may be singular or the problem stiff: "
-     "use an implicit solver such as diffrax.Kvaerno5(), or loosen rtol/atol"),
-    ("nonlinear_max_steps_reached",
-     "the implicit solver's nonlinear iteration did not converge: tighten rtol/atol (smaller "
-     "steps) or give the solver a more robust root finder"),
-    ("singular",
-     "a linear solve in the implicit solver was singular: use an explicit solver or smaller steps"),
-    ("breakdown", "the implicit solver broke down: use smaller steps or another solver"),
-)
+def _finite(y) -> Array:
+    return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree_util.tree_leaves(y)]))
 
 
-def _check_result(sol, y_final):
-    """Turn solver failures into runtime errors that name the cause and what to change."""
-    ok = (sol.result == dfx.RESULTS.successful) | (sol.result == dfx.RESULTS.event_occurred)
-    flags = [sol.result == getattr(dfx.RESULTS, name) for name, _ in _FAILURES]
-    finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x))
-                                for x in jax.tree_util.tree_leaves(y_final)]))
-    flags += [ok & ~finite, ~ok]
-    msgs = [m for _, m in _FAILURES] + [
-        "the state became non-finite (NaN or inf): check the parameters and initial state",
-        "the solver failed",
-    ]
-    return eqx.branched_error_if(
-        y_final, jnp.any(jnp.stack(flags)), jnp.argmax(jnp.stack(flags)), msgs
-    )
+def _check_result(result, y_final):
+    """The outcome code of a run (`jaxdyn.Outcome`), and `y_final` with a runtime error
+    attached where it is a failure, whose message names the cause and what to change."""
+    code = from_diffrax(result, _finite(y_final))
+    y_final = eqx.branched_error_if(y_final, ~is_success(code), code,
+                                    [MESSAGES[o] for o in Outcome])
+    return y_final, code
 
 
 def check_tolerances(rtol, atol, dtype) -> tuple:
@@ -379,7 +369,9 @@ def _simulate(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps, adjo
     fired = {} if event is None else dict(sol.event_mask)
     y_final = jax.tree.map(lambda a: a[0], y_end)
     if checks:
-        y_final = _check_result(sol, y_final)
+        y_final, outcome = _check_result(sol.result, y_final)
+    else:
+        outcome = from_diffrax(sol.result, _finite(y_final))
     t_final = t_end[0]
     if event is not None:
         # A terminating event already reached at the start ends the run there.
@@ -396,6 +388,7 @@ def _simulate(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps, adjo
         y_final=y_final,
         event=fired,
         result=sol.result,
+        outcome=outcome,
         stats=dict(sol.stats),
         interpolation=sol.interpolation,
     )

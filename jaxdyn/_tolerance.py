@@ -92,12 +92,30 @@ class ScaledPIDController(dfx.AbstractAdaptiveStepSizeController):
         tau1, state = self._inner().init(terms, zero, (t1 - t0) / T,
                                          jax.tree.map(_div, y0, scales), tau0, args,
                                          scaled_func, error_order)
-        return t0 + tau1 * T, (scales, state)
+        return t0 + tau1 * T, (scales, T, state)
 
     def adapt_step_size(self, t0, t1, y0, y1_candidate, args, y_error, error_order,
                         controller_state):
-        scales, state = controller_state
+        scales, T, state = controller_state
         z0, z1, err = (jax.tree.map(_div, x, scales) for x in (y0, y1_candidate, y_error))
+        # A step into a region where the vector field is not finite is rejected with the
+        # smallest factor (diffrax would carry a NaN step size on to the step budget).
+        finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(e)) & jnp.all(jnp.isfinite(z))
+                                    for e, z in zip(jax.tree.leaves(err),
+                                                    jax.tree.leaves(z1))]))
+        err = jax.tree.map(lambda e: jnp.where(finite, e, jnp.full_like(e, 1e30)), err)
         keep, t_next, t_after, jump, state, result = self._inner().adapt_step_size(
             t0, t1, z0, z1, args, err, error_order, state)
-        return keep, t_next, t_after, jump, (scales, state), result
+        # Step-size underflow (as jaxdyn's batch engine decides it): the next step no longer
+        # resolves the time, at round-off of `max(|t|, T)`. Reported as `nonfinite` where the
+        # rejected step was not finite, as `dt_min_reached` otherwise.
+        eps = jnp.finfo(jnp.result_type(t1)).eps
+        underflow = ~keep & (t_after - t_next <= underflow_step(t1, T, eps))
+        R = dfx.RESULTS
+        result = R.where(underflow, R.where(finite, R.dt_min_reached, R.nonfinite), result)
+        return keep, t_next, t_after, jump, (scales, T, state), result
+
+
+def underflow_step(t, time_scale, eps):
+    """The step below which time is not resolved: `16 eps max(|t|, T)`."""
+    return 16 * eps * jnp.maximum(jnp.abs(t), time_scale)

@@ -1,0 +1,123 @@
+"""One enumeration of outcomes (`jd.Outcome`): every outcome, produced on purpose, is labelled
+the same by `simulate` and by every ensemble mode (issue 18)."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import pytest
+
+import jaxdyn as jd
+from jaxdyn._outcome import MESSAGES, Outcome
+
+INERTIA = jnp.array([1.0, 2.0, 3.0])
+OMEGA = [0.3, 1.0, 0.2]
+
+
+class NanAfter(eqx.Module):
+    """A control law that breaks down (returns NaN) after `t_break`."""
+
+    t_break: float
+
+    def __call__(self, t, y):
+        return jnp.where(t > self.t_break, jnp.nan, 0.0) * y["omega"]
+
+
+class BlowUp(eqx.Module):
+    """A torque growing like |w|^2 w: the rates reach infinity in finite time."""
+
+    def __call__(self, t, y):
+        return 10.0 * jnp.sum(y["omega"] ** 2) * y["omega"] * INERTIA
+
+
+def free():
+    scene = jd.Scene(jd.RigidBody(INERTIA))
+    return scene, scene.state(omega=OMEGA), 1.0, {}
+
+
+def rod():
+    scene = jd.Scene(jd.FallingRod())
+    return scene, scene.state(theta=0.1), 5.0, {}
+
+
+def budget():
+    scene = jd.Scene(jd.RigidBody(INERTIA))
+    return scene, scene.state(omega=OMEGA), 100.0, {"max_steps": 5}
+
+
+def broken_law():
+    scene = jd.Scene(jd.RigidBody(INERTIA), (jd.ExternalTorque(NanAfter(0.5), feedback=True),))
+    return scene, scene.state(omega=OMEGA), 5.0, {}
+
+
+def singular():
+    scene = jd.Scene(jd.RigidBody(INERTIA), (jd.ExternalTorque(BlowUp(), feedback=True),))
+    return scene, scene.state(omega=OMEGA), 5.0, {}
+
+
+CASES = {
+    "completed": free,
+    "event": rod,
+    "max_steps_reached": budget,
+    "non_finite": broken_law,
+    "step_size_underflow": singular,
+}
+
+
+@pytest.mark.parametrize("expected", list(CASES))
+def test_simulate_labels_each_outcome(expected):
+    scene, y0, t1, kw = CASES[expected]()
+    if Outcome[expected] in (Outcome.completed, Outcome.event):
+        traj = jd.simulate(scene, y0, t1, **kw)
+        assert traj.outcome_name == expected
+    else:
+        with pytest.raises(RuntimeError) as info:
+            jd.simulate(scene, y0, t1, **kw)
+        assert MESSAGES[Outcome[expected]].split(":")[0] in str(info.value)
+
+
+@pytest.mark.parametrize("mode", ["adaptive", "lockstep", "vmap"])
+@pytest.mark.parametrize("expected", list(CASES))
+def test_ensemble_labels_each_outcome(expected, mode):
+    scene, y0, t1, kw = CASES[expected]()
+    res = jd.ensemble(scene, y0, t1, n=3, mode=mode, **kw)
+    assert res.status_counts() == {expected: 3}
+    if expected not in ("completed", "event"):
+        assert res.failures()[0]["message"] == MESSAGES[Outcome[expected]]
+
+
+@pytest.mark.parametrize("mode", ["adaptive", "lockstep", "vmap"])
+def test_invalid_samples_are_labelled_in_every_mode(mode):
+    scene = jd.Scene(jd.RigidBody(INERTIA))
+    # inertia[2] drawn above I1 + I2 = 3 for some samples: the triangle inequality fails
+    res = jd.ensemble(scene, scene.state(omega=OMEGA), 1.0, n=16, key=3, mode=mode,
+                      vary={"inertia[2]": jd.Uniform(2.0, 4.0)})
+    counts = res.status_counts()
+    assert set(counts) == {"completed", "invalid_input"} and counts["invalid_input"] > 0
+    bad = [f for f in res.failures(16) if f["status"] == "invalid_input"]
+    assert all("inertia" in f["message"] for f in bad)
+
+
+def test_invalid_input_inside_jit_raises_by_name():
+    scene = jd.Scene(jd.RigidBody(INERTIA))
+
+    @jax.jit
+    def run(inertia):
+        return jd.simulate(scene.replace(inertia=inertia), scene.state(omega=OMEGA), 1.0).t_final
+
+    with pytest.raises(RuntimeError, match="inertia"):
+        run(jnp.array([1.0, 2.0, 4.0]))
+
+
+def test_hybrid_outcomes():
+    scene = jd.Scene(jd.RoughFloorRod(mu_s=0.3, mu_k=0.2))
+    traj = jd.simulate(scene, scene.state(theta=0.2), 5.0)
+    assert traj.outcome_name == "event"
+    res = jd.ensemble(scene, scene.state(theta=0.2), 5.0, n=2, mode="vmap")
+    assert res.status_counts() == {"event": 2}
+    short = jd.simulate(scene, scene.state(theta=0.2), 0.05)
+    assert short.outcome_name == "completed"
+
+
+def test_outcome_names_and_messages_are_one_table():
+    assert [o.name for o in Outcome] == list(jd.Ensemble.status_names)
+    assert set(MESSAGES) == set(Outcome)
