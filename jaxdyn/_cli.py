@@ -58,16 +58,36 @@ def main(argv: list[str] | None = None) -> int:
     args.t_start = t_start
     from ._validation import ParameterError
 
+    # The one error boundary: every failure ends in one line on stderr, never a traceback.
     try:
         return commands[args.command].run(args)
     except ParameterError as e:
         _fail(str(e), 2)
-    except RuntimeError as e:  # runtime checks inside jit (eqx.error_if), solver failures
-        _fail(f"simulation failed: {_runtime_message(e)}", 1)
     except ModuleNotFoundError as e:
         if e.name == "matplotlib":
             _fail("plots need matplotlib: pip install 'jaxdyn[plot]'", 2)
-        raise
+        _fail(f"missing module {e.name!r}: reinstall jaxdyn", 1)
+    except RecursionError:
+        _fail("input nested too deeply (a scene file or value with deeply nested lists)", 2)
+    except MemoryError:
+        _fail("out of memory: use a smaller --n, --chunk or --samples", 1)
+    except UnicodeError as e:
+        _fail(f"input is not UTF-8 text ({e.reason} at byte {getattr(e, 'start', '?')})", 2)
+    except OSError as e:  # the paths the user named: missing, unwritable, a folder...
+        where = f" {e.filename!r}" if e.filename else ""
+        _fail(f"cannot use{where}: {e.strerror or e}", 2)
+    except RuntimeError as e:  # runtime checks inside jit (eqx.error_if), solver failures
+        _fail(f"simulation failed: {_runtime_message(e)}", 1)
+    except (TypeError, ValueError, OverflowError, KeyError, IndexError) as e:
+        # Values of the wrong type or size that got past the checks: still the input's fault.
+        _fail(f"invalid input: {_one_line(e)}", 2)
+    except Exception as e:  # anything else: one line naming the cause
+        _fail(f"failed: {type(e).__name__}: {_one_line(e)}", 1)
+
+
+def _one_line(error: BaseException) -> str:
+    text = " ".join(str(error).split())
+    return (text[:300] + "...") if len(text) > 300 else (text or type(error).__name__)
 
 
 if __name__ == "__main__":

@@ -563,7 +563,8 @@ def ensemble(
         chunk_size = math.ceil(per_device / 8) * 8 * d
     if not isinstance(chunk_size, int | np.integer) or chunk_size <= 0:
         raise ParameterError(f"chunk_size={chunk_size!r}: must be a positive integer")
-    chunk_size = int(math.ceil(int(chunk_size) / d) * d)
+    # No larger than the run needs (a chunk of 1e8 rows for n = 10 would only allocate padding).
+    chunk_size = int(math.ceil(min(int(chunk_size), n) / d) * d)
     if isinstance(keep, bool):
         keep_names = None if keep else ()
     else:

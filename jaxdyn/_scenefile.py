@@ -163,7 +163,15 @@ def _read(name_or_path: str) -> tuple[str, dict[str, Any]]:
                 f"scene={name_or_path!r}: not a built-in scene or a file; "
                 f"built-in scenes are {sorted(builtin_scenes())}"
             )
-        text, name = path.read_text(), path.stem
+        try:  # utf-8-sig: a byte-order mark from a Windows editor is not part of the TOML
+            text, name = path.read_text(encoding="utf-8-sig"), path.stem
+        except UnicodeDecodeError as e:
+            raise ParameterError(
+                f"scene file {name_or_path!r}: not UTF-8 text (byte {e.start}); save it as "
+                "UTF-8") from None
+        except OSError as e:
+            raise ParameterError(f"scene file {name_or_path!r}: cannot be read "
+                                 f"({e.strerror or e})") from None
     try:
         return name, tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
@@ -217,7 +225,7 @@ def load_scene(name_or_path: str, overrides: Mapping[str, Any] | None = None) ->
         raise ParameterError(f"unknown key(s) {unknown} in scene {name!r}: allowed are "
                              f"{sorted(_TOP_KEYS)}")
     kind = data.get("body")
-    if kind not in _BODIES:
+    if not isinstance(kind, str) or kind not in _BODIES:
         raise ParameterError(f"body={kind!r}: allowed are {sorted(_BODIES)}")
     spec = _BODIES[kind]
     params = data.get("parameters", {})
@@ -241,7 +249,7 @@ def load_scene(name_or_path: str, overrides: Mapping[str, Any] | None = None) ->
     effect_specs = []
     for i, e in enumerate(effects):
         etype = e.get("type")
-        if etype not in _EFFECTS:
+        if not isinstance(etype, str) or etype not in _EFFECTS:
             raise ParameterError(f"effects[{i}].type={etype!r}: allowed are {sorted(_EFFECTS)}")
         eallowed = _effect_keys(etype)
         for key, value in e.items():

@@ -16,6 +16,47 @@ def enable_x64() -> None:
     jax.config.update("jax_enable_x64", True)
 
 
+def bounded_int(option: str, low: int, high: int):
+    """An argparse type: an integer within `[low, high]`, refused by name otherwise."""
+    import argparse
+
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(
+                f"{option}={text!r}: expected an integer within [{low}, {high}]") from None
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(
+                f"{option}={value}: must be within [{low}, {high}]")
+        return value
+
+    return parse
+
+
+def check_output_file(option: str, path: str | None, suffixes=(".png",)) -> None:
+    """Refuse, before any computation, an output file that cannot be written: a wrong suffix,
+    a missing or unwritable folder, or a path that is a folder."""
+    import os
+    from pathlib import Path
+
+    from .._validation import ParameterError
+
+    if path is None:
+        return
+    p = Path(path)
+    if p.suffix.lower() not in suffixes:
+        raise ParameterError(f"{option}={path!r}: expected a file name ending in "
+                             f"{' or '.join(suffixes)}")
+    if p.is_dir():
+        raise ParameterError(f"{option}={path!r}: is a folder; give a file name")
+    parent = p.parent if str(p.parent) else Path(".")
+    if not parent.is_dir():
+        raise ParameterError(f"{option}={path!r}: the folder {str(parent)!r} does not exist")
+    if not os.access(parent, os.W_OK) or (p.exists() and not os.access(p, os.W_OK)):
+        raise ParameterError(f"{option}={path!r}: not writable")
+
+
 def add_scene_arguments(p, *, default_scene: str | None = None) -> None:
     """The arguments every simulating command shares: the scene, `--set`, `--t1`, `--max-steps`
     and `--json`."""
@@ -29,7 +70,8 @@ def add_scene_arguments(p, *, default_scene: str | None = None) -> None:
                    help="override a parameter, e.g. --set theta0=0.1 or "
                         "--set inertia=1,2,3 (repeatable)")
     p.add_argument("--t1", type=float, help="final time (s)")
-    p.add_argument("--max-steps", type=int, default=100_000,
+    p.add_argument("--max-steps", type=bounded_int("--max-steps", 1, 2**31 - 1),
+                   default=100_000,
                    help="solver step budget per run; exceeding it is an error or, in an "
                         "ensemble, a failed trajectory (default 100000)")
     p.add_argument("--json", action="store_true", help="print one JSON object")

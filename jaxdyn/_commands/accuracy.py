@@ -2,7 +2,7 @@
 
 import time
 
-from ._common import emit, enable_x64
+from ._common import check_output_file, emit, enable_x64
 
 HELP = "work-precision study: what each digit of accuracy costs in time, per method"
 
@@ -41,6 +41,7 @@ def run(args) -> int:
         raise ParameterError(f"--scene {unknown[0]!r}: allowed are {sorted(problems)}")
     if args.repeats < 1:
         raise ParameterError(f"--repeats={args.repeats}: must be at least 1")
+    check_output_file("--plot", args.plot)
     t0 = time.perf_counter()
     results, speed = {}, {}
     for name in names:

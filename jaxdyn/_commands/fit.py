@@ -44,7 +44,7 @@ def _read_csv(path: str) -> tuple[list[str], list[list[float]]]:
     if not p.is_file():
         raise ParameterError(f"data={path!r}: no such file")
     try:
-        text = p.read_text()
+        text = p.read_text(encoding="utf-8-sig")
     except (OSError, UnicodeDecodeError) as e:
         raise ParameterError(f"data={path!r}: cannot be read as text ({e})") from None
     lines = [(i + 1, row) for i, row in enumerate(csv.reader(text.splitlines())) if row]

@@ -2,7 +2,7 @@
 
 import time
 
-from ._common import add_scene_arguments, emit, enable_x64, parse_sets
+from ._common import add_scene_arguments, bounded_int, emit, enable_x64, parse_sets
 
 HELP = "Monte Carlo ensemble of a scene: statistics of its outputs"
 
@@ -11,20 +11,22 @@ def add_arguments(p) -> None:
     from .._distributions import DISTRIBUTION_SYNTAX
 
     add_scene_arguments(p)
-    p.add_argument("--n", type=int, required=True, help="number of trajectories")
+    p.add_argument("--n", type=bounded_int("--n", 1, 2**31 - 1), required=True,
+                   help="number of trajectories")
     p.add_argument("--vary", action="append", default=[], metavar="NAME=DIST",
                    help=f"a varied quantity (repeatable): {DISTRIBUTION_SYNTAX}; e.g. "
                         "--vary 'omega[0]+=normal(0, 0.01)' --vary 'inertia*=lognormal(1, 0.01)'")
-    p.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    p.add_argument("--seed", type=bounded_int("--seed", 0, 2**63 - 1), default=0,
+                   help="random seed (default 0)")
     p.add_argument("--mode", choices=("adaptive", "lockstep", "vmap"), default="adaptive",
                    help="per-trajectory steps (default), one step size for the batch, or "
                         "jax.vmap over simulate (any scene)")
-    p.add_argument("--chunk", type=int,
+    p.add_argument("--chunk", type=bounded_int("--chunk", 1, 2**31 - 1),
                    help="trajectories per compiled call (default: equal chunks of at most 16384)")
     p.add_argument("--out", metavar="DIR",
                    help="write each finished chunk here; run again to resume")
     p.add_argument("--progress", action="store_true", help="show a progress bar")
-    p.add_argument("--devices", type=int, default=None,
+    p.add_argument("--devices", type=bounded_int("--devices", 1, 4096), default=None,
                    help="CPU devices to shard each chunk across (default: one per core)")
 
 

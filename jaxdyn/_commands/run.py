@@ -3,14 +3,22 @@
 import time
 from typing import Any
 
-from ._common import add_scene_arguments, emit, enable_x64, parse_sets, warn_on_disagreement
+from ._common import (
+    add_scene_arguments,
+    bounded_int,
+    check_output_file,
+    emit,
+    enable_x64,
+    parse_sets,
+    warn_on_disagreement,
+)
 
 HELP = "simulate a scene and summarise it"
 
 
 def add_arguments(run) -> None:
     add_scene_arguments(run, default_scene="falling-rod")
-    run.add_argument("--samples", type=int, default=2001,
+    run.add_argument("--samples", type=bounded_int("--samples", 2, 10**7), default=2001,
                      help="number of saved samples over the run (default 2001)")
     run.add_argument("--plot", metavar="FILE", help="write a PNG figure")
 
@@ -23,6 +31,7 @@ def run(args) -> int:
     from .._simulate import simulate
     from .._validation import ParameterError
 
+    check_output_file("--plot", args.plot)
     overrides = parse_sets(args.set)
     if args.t1 is not None:
         overrides["t1"] = args.t1
