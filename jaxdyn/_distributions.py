@@ -178,6 +178,9 @@ def parse_distribution(text: str) -> AbstractDistribution:
     text = text.strip()
     m = _CALL.match(text)
     if m is None:
+        if re.search(r"\b(True|False|None)\b", text):
+            raise ParameterError(f"distribution {text!r}: expected a number, not True, False "
+                                 "or None")
         try:
             return Fixed(ast.literal_eval(text))
         except (ValueError, SyntaxError, TypeError, ParameterError):
@@ -185,6 +188,9 @@ def parse_distribution(text: str) -> AbstractDistribution:
                 f"distribution {text!r}: expected normal(MEAN, STD), uniform(LOW, HIGH), "
                 "lognormal(MEDIAN, SIGMA) or a number") from None
     name, inner = m.groups()
+    if re.search(r"\b(True|False|None)\b", inner):
+        raise ParameterError(f"distribution {text!r}: arguments must be numbers or lists of "
+                             "numbers (not True, False or None)")
     if name not in _DISTRIBUTIONS:
         raise ParameterError(
             f"distribution {name!r} in {text!r}: allowed are {sorted(_DISTRIBUTIONS)}")

@@ -69,8 +69,16 @@ def _build_wheels(control: str = "none", gain=None, kp=None, kd=None, target=Non
             _need("wheels.target", target), _need("wheels.kp", kp), _need("wheels.kd", kd)
         ),
     }
-    if control not in laws:
+    if not isinstance(control, str) or control not in laws:
         raise ParameterError(f"wheels.control={control!r}: allowed are {sorted(laws)}")
+    uses = {"none": (), "rate-damping": ("gain",), "attitude-tracking": ("kp", "kd", "target")}
+    given = {"gain": gain, "kp": kp, "kd": kd, "target": target}
+    stray = sorted(k for k, v in given.items() if v is not None and k not in uses[control])
+    if stray:
+        raise ParameterError(
+            f"wheels.{stray[0]} given, but wheels.control={control!r} does not use it: set "
+            f"wheels.control to {'rate-damping' if stray[0] == 'gain' else 'attitude-tracking'}"
+            " or remove it")
     law = laws[control]()
     if law is not None:
         if "motor" in kwargs:

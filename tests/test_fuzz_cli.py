@@ -89,3 +89,19 @@ def test_vary_values(capsys, name, op, dist):
 ])
 def test_refused_before_any_work(capsys, argv):
     assert _run(capsys, argv) == 2
+
+
+def test_silent_acceptances_now_refused(tmp_path, capsys):
+    import jaxdyn as jd
+
+    scene = tmp_path / "wheels.toml"
+    scene.write_text('body = "rigid-body"\n[parameters]\ninertia = [1.0, 2.0, 3.0]\n'
+                     'omega0 = [0.1, 0.2, 0.3]\n[[effects]]\ntype = "wheels"\n'
+                     'axes = [[1.0, 0.0, 0.0]]\ninertia = [0.1]\ngain = 0.5\n')
+    assert _run(capsys, ["run", str(scene)]) == 2
+    assert _run(capsys, ["montecarlo", "torque-free", "--n", "4", "--vary",
+                         "omega[0]=True"]) == 2
+    for law in (lambda: jd.RateDamping(float("nan")),
+                lambda: jd.AttitudeTracking([1.0, 0.0, 0.0, 0.0], kp=-1.0, kd=1.0)):
+        with pytest.raises(jd.ParameterError, match="must be finite and non-negative"):
+            law()

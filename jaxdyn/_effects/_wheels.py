@@ -212,6 +212,9 @@ class RateDamping(eqx.Module):
     def __init__(self, gain: ArrayLike):
         self.gain = as_float_array("rate_damping.gain", gain, ())
 
+    def __check_init__(self):
+        _gain_checks({"rate_damping.gain": self.gain})
+
     def __call__(self, t, y, wheels: Wheels) -> Array:
         wanted = -self.gain.astype(y["omega"].dtype) * y["omega"]
         return _allocate(wheels, wanted)
@@ -235,6 +238,9 @@ class AttitudeTracking(eqx.Module):
         self.kp = as_float_array("attitude_tracking.kp", kp, (), target.dtype)
         self.kd = as_float_array("attitude_tracking.kd", kd, (), target.dtype)
 
+    def __check_init__(self):
+        _gain_checks({"attitude_tracking.kp": self.kp, "attitude_tracking.kd": self.kd})
+
     def __call__(self, t, y, wheels: Wheels) -> Array:
         from .._rotations import quat_conjugate, quat_multiply
 
@@ -247,6 +253,15 @@ class AttitudeTracking(eqx.Module):
         sign = jnp.where(dq[0] >= 0, 1.0, -1.0).astype(dtype)
         wanted = -self.kp.astype(dtype) * sign * dq[1:] - self.kd.astype(dtype) * y["omega"]
         return _allocate(wheels, wanted)
+
+
+def _gain_checks(gains: dict) -> None:
+    """Control-law gains: finite and non-negative (a NaN gain would only show up as an
+    exhausted step budget; a negative one pumps energy in)."""
+    from .._validation import raise_if_violated
+
+    raise_if_violated([(name, g, ~(jnp.isfinite(g) & (g >= 0)),
+                        "must be finite and non-negative") for name, g in gains.items()])
 
 
 def _allocate(wheels: Wheels, body_torque) -> Array:
