@@ -26,6 +26,7 @@ from ._rod import FallingRod
 from ._scene import Scene
 from ._simulate import simulate
 from ._solvers import RK4, RotationSplitting
+from ._tolerance import FLOOR
 from ._validation import ParameterError
 
 
@@ -256,7 +257,8 @@ def _scipy(problem: Problem, ref, repeats: int, budget: float, stopped: dict) ->
 
     y0 = _flat(problem.scene, problem.y0)
     shapes = problem.scene.state_shapes()
-    # The same error control as jaxdyn's: each component against rtol times its natural scale.
+    # The same error control as jaxdyn's: each component's floor is 1% (FLOOR) of rtol times
+    # its natural scale.
     scales, _ = problem.scene.natural_scales(jnp.zeros(()), jnp.asarray(problem.t1),
                                              problem.y0)
     scale = _flat(problem.scene, {k: jnp.broadcast_to(v, problem.y0[k].shape)
@@ -267,7 +269,8 @@ def _scipy(problem: Problem, ref, repeats: int, budget: float, stopped: dict) ->
         for tol in TOLERANCES:
             def run(tol=tol):
                 return solve_ivp(problem.numpy_rhs, (0.0, problem.t1), y0, method=name,
-                                 rtol=tol, atol=tol * scale, events=problem.numpy_event)
+                                 rtol=tol, atol=FLOOR * tol * scale,
+                                 events=problem.numpy_event)
 
             times = []
             for _ in range(max(repeats, 1)):
