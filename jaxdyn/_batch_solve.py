@@ -214,8 +214,7 @@ def batch_solve(
             lambda a, x: jnp.broadcast_to(a.reshape((n,) + (1,) * (x.ndim - 1)), x.shape),
             atol, y0)))
     else:
-        atol = tuple(x for x in to_rows(_last(jax.tree.map(
-            lambda x: jnp.full(x.shape, atol, x.dtype), y0))))
+        atol = to_rows(_last(jax.tree.map(lambda x: jnp.full(x.shape, atol, x.dtype), y0)))
     y0, params = to_rows(_last(y0)), _last(params)
     time_scale = jnp.ones((n,), y0[0].dtype) if time_scale is None else time_scale
     batched_field = jax.vmap(field, in_axes=(-1, 0, -1), out_axes=-1)

@@ -87,15 +87,10 @@ class AbstractBody(eqx.Module):
 
         Error control measures every state variable against `rtol` times the larger of its
         magnitude and its scale, so the scales make the default tolerances independent of the
-        units (see [`jaxdyn.simulate`][]). Default: each variable's largest initial magnitude,
-        and the time span."""
-        scales = {k: jnp.max(jnp.abs(v)) for k, v in y0.items() if k in self.state_names(y0)}
+        units (see [`jaxdyn.simulate`][]). Default: no declared scale (the scene then uses
+        each variable's largest initial magnitude), and the time span."""
         one = jnp.ones((), jnp.result_type(t0))
-        return scales, {"time": jnp.abs(t1 - t0), "momentum": one, "energy": one}
-
-    def state_names(self, y: State) -> tuple[str, ...]:
-        """The body's own variables in a state `y` (effects' variables carry a `label.`)."""
-        return tuple(k for k in y if "." not in k)
+        return {}, {"time": jnp.abs(t1 - t0), "momentum": one, "energy": one}
 
     def invariant_scale(self, name: str, value: Array) -> Array:
         """Scale against which the drift of invariant `name` is measured (default: its

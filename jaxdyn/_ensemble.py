@@ -20,7 +20,7 @@ from . import _batch_solve
 from ._batch_solve import STATUS, STATUS_HELP, batch_solve, tableau
 from ._chunkstore import ChunkStore, digest
 from ._distributions import AbstractDistribution, name_seed, split_name
-from ._outcome import from_diffrax, to_diffrax
+from ._outcome import Outcome, to_diffrax
 from ._scene import Scene
 from ._simulate import Trajectory, _prepare_run, _simulate, check_tolerances
 from ._tolerance import FLOOR, ScaledPIDController
@@ -272,10 +272,8 @@ def _chunk_core(dyn, sharded, *, static, config, axis_name):
                              meter=dfx.NoProgressMeter(), dense=False, checks=False)
 
         trajs = eqx.filter_vmap(run)(params, y0)
-        finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(x.reshape(m, -1)), axis=1)
-                                    for x in jax.tree.leaves(trajs.y_final)]), axis=0)
         invalid = jnp.any(flags, axis=1)
-        status = jax.vmap(from_diffrax)(trajs.result, finite, invalid)
+        status = jnp.where(invalid, jnp.int32(Outcome.invalid_input), trajs.outcome)
         reason = jnp.argmax(flags, axis=1).astype(jnp.int32)
         steps = trajs.stats["num_accepted_steps"]
     else:
@@ -288,10 +286,9 @@ def _chunk_core(dyn, sharded, *, static, config, axis_name):
                 fns = scene_of(p).events()
                 return jnp.stack([fns[k](t, y) for k in names])
 
-        def tolerances(p, y):  # each variable against rtol times its natural scale
-            scales, time_scale = ScaledPIDController(rtol=rtol, atol=atol).scales(
-                scene_of(p), t0, t1, y)
-            return {k: FLOOR * rtol * v for k, v in scales.items()}, time_scale
+        def tolerances(p, y):  # each variable's floor: FLOOR rtol times its natural scale
+            bound = ScaledPIDController(rtol=rtol, atol=atol).bind(scene_of(p), t0, t1, y)
+            return {k: FLOOR * rtol * v for k, v in bound.scales.items()}, bound.time_scale
 
         floors, time_scale = jax.vmap(tolerances)(params, y0)
         r = batch_solve(field, conditions, names, flags, params, y0, t0, t1, ts,
@@ -539,7 +536,7 @@ def ensemble(
     # Check the run's settings on one unbatched trajectory, as simulate would.
     example = {k: (v[0] if k in y_batch else v) for k, v in y0.items()}
     example = {k: jnp.asarray(v) for k, v in example.items()}
-    ex_y0, t0, t1, ts, solver, controller, dt0 = _prepare_run(
+    ex_y0, t0, t1, ts, solver, _, dt0 = _prepare_run(
         scene, example, t0, t1, ts, solver, rtol, atol, None, dt0, max_steps)
     dtype = t0.dtype
     rtol, atol = (float(x) for x in check_tolerances(rtol, atol, dtype))

@@ -79,10 +79,11 @@ class HybridInterpolation(eqx.Module):
 
 
 def simulate_hybrid(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps, adjoint,
-                    meter, dense, checks=True):
+                    meter, dense, time_scale, checks=True):
     """The body of `jaxdyn.simulate` for hybrid bodies (traced inside its `jit`)."""
     from ._outcome import MESSAGES, Outcome, from_diffrax
     from ._simulate import Trajectory, _check_result, _finite
+    from ._tolerance import ScaledPIDController
 
     body = scene.body
     fns = scene.events()
@@ -91,7 +92,6 @@ def simulate_hybrid(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps
     dtype = t0.dtype
     f64 = dtype == jnp.float64
     root_tol = 1e-12 if f64 else 1e-6
-    time_scale = scene.natural_scales(t0, t1, y0)[1]  # event times: absolute in this scale
     fire_tol = 1e-8 if f64 else 1e-3
     ret = jnp.result_type(float)  # diffrax compares event values with a Python float
 
@@ -172,7 +172,9 @@ def simulate_hybrid(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps
             term, solver, t_s, t_stop, dt0, y_s,
             args=scene,
             saveat=dfx.SaveAt(subs=[*subs, dfx.SubSaveAt(t1=True)], dense=dense),
-            stepsize_controller=controller,
+            # each segment's error control in its own start's natural scales
+            stepsize_controller=(controller.bind(scene, t_s, t_stop, y_s)
+                                 if isinstance(controller, ScaledPIDController) else controller),
             max_steps=max_steps,
             adjoint=adjoint,
             event=event,

@@ -246,8 +246,7 @@ def quat_normalize(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 4"]:
 
     `q / |q|`, shape `(..., 4)`.
     """
-    q = _asarray(q)
-    return q / safe_norm(q, keepdims=True)
+    return unit(q)
 
 
 def quat_to_dcm(q: Float[ArrayLike, "*batch 4"]) -> Float[Array, "*batch 3 3"]:

@@ -173,11 +173,10 @@ def check_tolerances(rtol, atol, dtype) -> tuple:
     return jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype)
 
 
-def _event(scene: Scene, t0, t1, y0) -> dfx.Event | None:
+def _event(scene: Scene, t0, y0, time_scale) -> dfx.Event | None:
     fns = scene.events()
     if not fns:
         return None
-    time_scale = scene.natural_scales(t0, t1, y0)[1]
 
     def wrap(f):
         # The root finder's tolerance applies to the time and to the condition alike: the
@@ -336,16 +335,19 @@ def _simulate(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps, adjo
     if checks:
         y0 = scene.check(y0)
     if isinstance(controller, ScaledPIDController):
-        controller = controller.with_floor(scene, t0, t1, y0)
+        controller = controller.bind(scene, t0, t1, y0)
+        time_scale = controller.time_scale
+    else:  # a controller of the user's: the time scale is still the events'
+        time_scale = scene.natural_scales(t0, t1, y0)[1]
     if events and scene.body.max_switches > 0:
         from ._hybrid import simulate_hybrid
 
         return simulate_hybrid(scene, y0, t0, t1, ts, solver=solver, controller=controller,
                                dt0=dt0, max_steps=max_steps, adjoint=adjoint, meter=meter,
-                               dense=dense, checks=checks)
+                               dense=dense, checks=checks, time_scale=time_scale)
     first = dfx.SubSaveAt(t0=True) if ts is None else dfx.SubSaveAt(ts=ts)
     saveat = dfx.SaveAt(subs=[first, dfx.SubSaveAt(t1=True)], dense=dense)
-    event = _event(scene, t0, t1, y0) if events else None
+    event = _event(scene, t0, y0, time_scale) if events else None
     sol = dfx.diffeqsolve(
         dfx.ODETerm(scene.vector_field),
         solver,

@@ -37,10 +37,9 @@ of an intermediate-axis flip reached 50 `rtol`; with 0.01 it stays near `rtol`, 
 class ScaledPIDController(dfx.AbstractAdaptiveStepSizeController):
     """diffrax's PID controller on the state divided by its natural scales.
 
-    The scales are computed from the initial state when the integration starts (`init`), from
-    the `jaxdyn.Scene` passed to `diffeqsolve` as `args`, and carried in the controller's
-    state; they are constants of the run (no gradient flows through them, as none flows
-    through diffrax's step-size choice).
+    Built with the tolerances alone, then bound to a run (`bind`), which computes the scales
+    once from the scene and the initial state; they are constants of the run (no gradient
+    flows through them, as none flows through diffrax's step-size choice).
 
     **Arguments:**
 
@@ -51,6 +50,23 @@ class ScaledPIDController(dfx.AbstractAdaptiveStepSizeController):
     rtol: Any
     atol: Any
     norm: Callable[[PyTree], Any] = optx.rms_norm
+    scales: dict | None = None
+    time_scale: Any = None
+
+    def bind(self, scene, t0, t1, y0) -> "ScaledPIDController":
+        """This controller for a run of `scene` from `y0` over `[t0, t1]`: the natural scales
+        (no lower than `atol` allows) and the time scale, and `atol` raised to `FLOOR` times
+        `rtol` times the smallest scale. That changes no step (no scale lies below it) and
+        gives what diffrax hands `atol` to, the nonlinear solves of implicit solvers, an
+        absolute tolerance in the state's units."""
+        scales, time_scale = scene.natural_scales(t0, t1, y0)
+        floor = jnp.where(self.rtol > 0, self.atol / (FLOOR * self.rtol), 0.0)
+        scales = {k: jnp.maximum(s, floor.astype(s.dtype)) for k, s in scales.items()}
+        scales, time_scale = jax.lax.stop_gradient((scales, time_scale))
+        smallest = jnp.min(jnp.stack([jnp.min(s) for s in scales.values()]))
+        return ScaledPIDController(rtol=self.rtol,
+                                   atol=jnp.maximum(self.atol, FLOOR * self.rtol * smallest),
+                                   norm=self.norm, scales=scales, time_scale=time_scale)
 
     def _inner(self) -> dfx.PIDController:
         return dfx.PIDController(rtol=self.rtol, atol=FLOOR * self.rtol, norm=self.norm)
@@ -58,26 +74,10 @@ class ScaledPIDController(dfx.AbstractAdaptiveStepSizeController):
     def wrap(self, direction):
         return self
 
-    def scales(self, scene, t0, t1, y0) -> tuple[dict, Any]:
-        """The state's scales (with the `atol` floor) and the time scale."""
-        scales, time_scale = scene.natural_scales(t0, t1, y0)
-        floor = jnp.where(self.rtol > 0, self.atol / (FLOOR * self.rtol), 0.0)
-        scales = {k: jnp.maximum(s, floor.astype(s.dtype)) for k, s in scales.items()}
-        return jax.lax.stop_gradient((scales, time_scale))
-
-    def with_floor(self, scene, t0, t1, y0) -> "ScaledPIDController":
-        """The same controller with `atol` raised to `rtol` times the smallest natural scale:
-        the same step-size control (no scale lies below it), and a meaningful absolute
-        tolerance, in the state's units, for what diffrax hands `atol` to: the nonlinear
-        solves of implicit solvers."""
-        scales, _ = self.scales(scene, t0, t1, y0)
-        smallest = jnp.min(jnp.stack([jnp.min(s) for s in scales.values()]))
-        return ScaledPIDController(rtol=self.rtol,
-                                   atol=jnp.maximum(self.atol, FLOOR * self.rtol * smallest),
-                                   norm=self.norm)
-
     def init(self, terms, t0, t1, y0, dt0, args, func, error_order):
-        scales, T = self.scales(args, t0, t1, y0)
+        if self.scales is None:
+            raise ValueError("ScaledPIDController: bind it to the run first (bind)")
+        scales, T = self.scales, self.time_scale
 
         # The first step is chosen as diffrax chooses it (Hairer, Norsett & Wanner), on the
         # dimensionless state and in units of the time scale: their rule mixes powers of time
@@ -92,11 +92,11 @@ class ScaledPIDController(dfx.AbstractAdaptiveStepSizeController):
         tau1, state = self._inner().init(terms, zero, (t1 - t0) / T,
                                          jax.tree.map(_div, y0, scales), tau0, args,
                                          scaled_func, error_order)
-        return t0 + tau1 * T, (scales, T, state)
+        return t0 + tau1 * T, state
 
     def adapt_step_size(self, t0, t1, y0, y1_candidate, args, y_error, error_order,
                         controller_state):
-        scales, T, state = controller_state
+        scales = self.scales
         z0, z1, err = (jax.tree.map(_div, x, scales) for x in (y0, y1_candidate, y_error))
         # A step into a region where the vector field is not finite is rejected with the
         # smallest factor (diffrax would carry a NaN step size on to the step budget).
@@ -105,15 +105,15 @@ class ScaledPIDController(dfx.AbstractAdaptiveStepSizeController):
                                                     jax.tree.leaves(z1))]))
         err = jax.tree.map(lambda e: jnp.where(finite, e, jnp.full_like(e, 1e30)), err)
         keep, t_next, t_after, jump, state, result = self._inner().adapt_step_size(
-            t0, t1, z0, z1, args, err, error_order, state)
+            t0, t1, z0, z1, args, err, error_order, controller_state)
         # Step-size underflow (as jaxdyn's batch engine decides it): the next step no longer
         # resolves the time, at round-off of `max(|t|, T)`. Reported as `nonfinite` where the
         # rejected step was not finite, as `dt_min_reached` otherwise.
         eps = jnp.finfo(jnp.result_type(t1)).eps
-        underflow = ~keep & (t_after - t_next <= underflow_step(t1, T, eps))
+        underflow = ~keep & (t_after - t_next <= underflow_step(t1, self.time_scale, eps))
         R = dfx.RESULTS
         result = R.where(underflow, R.where(finite, R.dt_min_reached, R.nonfinite), result)
-        return keep, t_next, t_after, jump, (scales, T, state), result
+        return keep, t_next, t_after, jump, state, result
 
 
 def underflow_step(t, time_scale, eps):

@@ -104,7 +104,7 @@ def test_the_fingerprint_covers_the_devices(tmp_path):
     assert one.returncode != 0 and "different run" in one.stderr
 
 
-def test_chunk_files_are_checked_in_any_order_of_warnings(tmp_path):
+def test_a_write_in_progress_is_left_alone(tmp_path):
     """A store opened while another process has a write in progress leaves it alone."""
     _store(tmp_path)
     tmp = tmp_path / f".chunk-000000.npz.{_HOST}.{os.getpid()}.xyz.tmp"
