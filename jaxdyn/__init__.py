@@ -16,6 +16,7 @@ from ._effects import (
     ExternalTorque as ExternalTorque,
     GravityGradient as GravityGradient,
     RateDamping as RateDamping,
+    RingDamper as RingDamper,
     Rotor as Rotor,
     Wheels as Wheels,
 )
@@ -45,6 +46,7 @@ from ._identify import (
     fit as fit,
 )
 from ._inertia import inertia_tensor as inertia_tensor, principal_axes as principal_axes
+from ._inputs import Input as Input
 from ._outcome import Outcome as Outcome
 from ._polhode import (
     polhode as polhode,

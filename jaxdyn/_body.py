@@ -9,21 +9,34 @@ import jax.numpy as jnp
 from jaxtyping import Array
 
 from ._custom_types import Scalar, State
+from ._inputs import BODIES, Input, register
 from ._validation import Check
 
 
 class AbstractBody(eqx.Module):
     """A body: owns its state variables, mass properties and equations of motion.
 
-    Concrete bodies declare their parameters (array leaves, differentiable and vmappable) in
-    `parameter_names`, build their part of the state in `initial_state`, and assemble their
-    equations of motion from the loads contributed by the scene's effects in `derivative`.
+    Concrete bodies declare their inputs once (`inputs`: parameters, initial values, options,
+    with units and ranges; see [`jaxdyn.Input`][]), build their part of the state in
+    `initial_state`, and assemble their equations of motion from the loads contributed by the
+    scene's effects in `derivative`. Declaring `inputs` registers the body under its `kind` for
+    scene files and the command.
     """
 
     kind: ClassVar[str]
     """Name of the body type, as used in scene files (`"rigid-body"`, `"falling-rod"`)."""
+    inputs: ClassVar[tuple[Input, ...]] = ()
+    """What scene files, `--set`, `--vary`, `fit` and the docs know of this body."""
     parameter_names: ClassVar[tuple[str, ...]]
-    """Fields that are physical parameters."""
+    """Fields that are physical parameters (array leaves; by default the numeric inputs with
+    role `"parameter"`)."""
+    accepts_effects: ClassVar[bool] = False
+    """Whether effects (torques, rotors, wheels) can act on this body."""
+    identifiability: ClassVar[Mapping[str, str]] = {}
+    """For `fit`: why a fitted component may be undetermined, by component name."""
+    plain_scene: ClassVar[str | None] = None
+    """The built-in scene of this body alone, if any (`jaxdyn fit` picks it from a data
+    file's columns)."""
     invariant_names: ClassVar[tuple[str, ...]]
     """Quantities conserved by the body's own dynamics (before effects are added)."""
     max_switches: ClassVar[int] = 0
@@ -110,6 +123,15 @@ class AbstractBody(eqx.Module):
         turn non-finite values into `null`.
         """
         return {}
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        register(BODIES, cls)
+
+    @classmethod
+    def from_inputs(cls, **values: Any) -> "AbstractBody":
+        """The body from validated scene-file values of its `"parameter"` inputs."""
+        return cls(**values)
 
     def __check_init__(self):
         from ._validation import raise_if_violated

@@ -6,6 +6,7 @@ import equinox as eqx
 from jaxtyping import Array
 
 from ._custom_types import Scalar, State
+from ._inputs import EFFECTS, Input, register
 from ._validation import Check
 
 
@@ -23,6 +24,10 @@ class AbstractEffect(eqx.Module):
 
     kind: ClassVar[str]
     """Name used in scene files and in parameter names (`"rotor"`, `"torque"`...)."""
+    inputs: ClassVar[tuple[Input, ...]] = ()
+    """What scene files, `--set`, `--vary`, `fit` and the docs know of this effect (see
+    [`jaxdyn.Input`][]). Declaring them registers the effect under its `kind`: a new effect
+    in its own file in `jaxdyn/_effects/` is then known to scene files and the command."""
     parameter_names: ClassVar[tuple[str, ...]] = ()
     needs_attitude: ClassVar[bool] = False
     """Whether the effect needs the attitude (and so makes the scene integrate it)."""
@@ -37,6 +42,21 @@ class AbstractEffect(eqx.Module):
     quantities (`"momentum"`, `"energy"`, `"time"`): its error is controlled relative to the
     larger of its magnitude and that reference (see `AbstractBody.natural_scales`). Variables
     not listed are measured against their initial magnitude."""
+
+    def __init_subclass__(cls, **kwargs):
+        super().__init_subclass__(**kwargs)
+        register(EFFECTS, cls)
+
+    @classmethod
+    def from_inputs(cls, **values: Any) -> "AbstractEffect":
+        """The effect from validated scene-file values of its `"parameter"` inputs."""
+        return cls(**values)
+
+    @classmethod
+    def accepts(cls, body_cls) -> bool:
+        """Whether this effect can act on bodies of class `body_cls` (default: on bodies that
+        accept effects, the rigid body)."""
+        return body_cls.accepts_effects
 
     def checks(self) -> list[Check]:
         return []

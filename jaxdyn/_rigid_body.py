@@ -1,15 +1,18 @@
 """A rigid body: Euler's equations with optional attitude (quaternion) kinematics."""
 
+from collections.abc import Mapping
 from typing import Any, ClassVar
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ._body import AbstractBody
 from ._custom_types import Scalar, State
 from ._inertia import invert3, moments_checks, principal_axes, tensor_checks
+from ._inputs import Input
 from ._rotations import (
     mrp_from_quat,
     quat_derivative,
@@ -51,7 +54,29 @@ class RigidBody(AbstractBody):
     inertia: Float[Array, "3"] | Float[Array, "3 3"]
 
     kind: ClassVar[str] = "rigid-body"
-    parameter_names: ClassVar[tuple[str, ...]] = ("inertia",)
+    inputs: ClassVar[tuple[Input, ...]] = (
+        Input("inertia", "3 principal moments, or the tensor (9 entries row by row) with "
+              "products of inertia in the body frame; each principal moment at most the sum "
+              "of the other two", "kg m^2", shapes=((3,), (9,), (3, 3)),
+              fit="inertia"),
+        Input("omega0", "initial body rates in the body frame", "rad/s", shapes=((3,),),
+              role="initial", state="omega", required=True, fit="free",
+              columns=("wx", "wy", "wz")),
+        Input("quaternion0", "initial attitude, scalar first, body to inertial (default: "
+              "identity; normalised)", shapes=((4,),), role="initial", state="quaternion",
+              needs_attitude=True, fit="unit", columns=("q0", "q1", "q2", "q3"),
+              measured_optionally=True),
+        Input("attitude", "integrate the attitude quaternion even if no effect needs it",
+              "", type="bool", role="scene"),
+    )
+    accepts_effects: ClassVar[bool] = True
+    plain_scene: ClassVar[str | None] = "torque-free"
+    identifiability: ClassVar[Mapping[str, str]] = {
+        "inertia.scale": "the rates of a torque-free body do not change when its inertia "
+        "is multiplied by a constant, so only the normalised tensor is fitted (principal "
+        "moments scaled so that the largest is 1); a known torque or rotor momentum in "
+        "the scene would fix the scale",
+    }
     invariant_names: ClassVar[tuple[str, ...]] = ("energy", "momentum")
 
     def __init__(self, inertia: Float[ArrayLike, "3"] | Float[ArrayLike, "3 3"]):
@@ -61,6 +86,11 @@ class RigidBody(AbstractBody):
                 f"inertia has shape {arr.shape}: expected 3 principal moments or a 3x3 tensor"
             )
         self.inertia = arr
+
+    @classmethod
+    def from_inputs(cls, inertia, **values) -> "RigidBody":
+        flat = np.asarray(inertia)
+        return cls(inertia=flat.reshape(3, 3) if flat.shape == (9,) else inertia, **values)
 
     # -- mass properties ------------------------------------------------------------------------
 

@@ -8,6 +8,7 @@ $$\ddot\theta = \frac{3 \sin\theta\,(2 g - L \dot\theta^2 \cos\theta)}{L (1 + 3\
 \qquad N = m g - m \tfrac{L}{2}(\dot\theta^2\cos\theta + \ddot\theta \sin\theta).$$
 """
 
+from collections.abc import Mapping
 from typing import Any, ClassVar
 
 import equinox as eqx
@@ -18,6 +19,7 @@ from jaxtyping import Array, ArrayLike, Float
 from ._body import AbstractBody
 from ._custom_types import Scalar, State
 from ._fastmath import sincos
+from ._inputs import Input
 from ._validation import Check, ParameterError, as_float_array, positive_check
 
 # Gauss-Legendre nodes for the fall-time quadrature (three panels of 32 nodes; see `fall_time`).
@@ -44,6 +46,19 @@ def check_angle_rate(dtype, theta, theta_dot, names=("theta", "theta_dot"), shap
         (names[1], theta_dot, ~jnp.isfinite(theta_dot), "must be finite"),
     ])
     return theta, theta_dot
+
+
+ROD_INPUTS = (
+    Input("length", "rod length L", "m", bound="positive", fit="positive"),
+    Input("mass", "rod mass (enters the normal force and the energies only)", "kg",
+          bound="positive", fit="positive"),
+    Input("g", "gravitational acceleration", "m/s^2", bound="positive"),
+    Input("theta0", "initial angle from the vertical (the top moves to +x for theta > 0)",
+          "rad", role="initial", state="theta", required=True, fit="free", columns=("theta",)),
+    Input("theta_dot0", "initial angular rate", "rad/s", role="initial", state="theta_dot",
+          fit="free"),
+)
+"""The inputs of the rods (the rough-floor rod adds its friction coefficients)."""
 
 
 def rod_start(name: str, dtype, attitude: bool, theta, theta_dot, unknown):
@@ -90,7 +105,12 @@ class FallingRod(AbstractBody):
     g: Float[Array, ""]
 
     kind: ClassVar[str] = "falling-rod"
-    parameter_names: ClassVar[tuple[str, ...]] = ("length", "mass", "g")
+    inputs: ClassVar[tuple[Input, ...]] = ROD_INPUTS
+    plain_scene: ClassVar[str | None] = "falling-rod"
+    identifiability: ClassVar[Mapping[str, str]] = {
+        "mass": "the mass cancels from the rod's equation of motion (theta(t) depends on "
+        "g/L only); with g known the length is determined, the mass is not",
+    }
     invariant_names: ClassVar[tuple[str, ...]] = ("energy",)
 
     def __init__(self, length: ArrayLike = 1.0, mass: ArrayLike = 1.0, g: ArrayLike = 9.81):

@@ -58,6 +58,7 @@ frottement* (1895), and F. Génot and B. Brogliato, "New results on Painlevé pa
 Eur. J. Mech. A/Solids 18 (1999).
 """
 
+import dataclasses
 from collections.abc import Mapping
 from typing import Any, ClassVar
 
@@ -67,7 +68,8 @@ from jaxtyping import Array, ArrayLike, Float
 
 from ._body import AbstractBody
 from ._custom_types import Scalar, State
-from ._rod import check_angle_rate, rod_scales, rod_start
+from ._inputs import Input
+from ._rod import ROD_INPUTS, check_angle_rate, rod_scales, rod_start
 from ._validation import Check, as_float_array, positive_check
 
 STICK, SLIP, FLIGHT = 0.0, 1.0, 2.0
@@ -115,7 +117,11 @@ class RoughFloorRod(AbstractBody):
     mu_k: Float[Array, ""]
 
     kind: ClassVar[str] = "rough-floor-rod"
-    parameter_names: ClassVar[tuple[str, ...]] = ("length", "mass", "g", "mu_s", "mu_k")
+    inputs: ClassVar[tuple[Input, ...]] = (
+        *(dataclasses.replace(i, fit=None, columns=()) for i in ROD_INPUTS),
+        Input("mu_s", "static friction coefficient", bound="nonnegative"),
+        Input("mu_k", "kinetic friction coefficient, at most mu_s", bound="nonnegative"),
+    )
     invariant_names: ClassVar[tuple[str, ...]] = ("energy",)
     max_switches: ClassVar[int] = 16
     report_labels: ClassVar[Mapping[str, Mapping[float, str]]] = {

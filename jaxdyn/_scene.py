@@ -63,7 +63,7 @@ class Scene(eqx.Module):
         for e in effects:
             if not isinstance(e, AbstractEffect):
                 raise ParameterError(f"effects contains {e!r}: expected jaxdyn effects")
-            if body.kind != "rigid-body":
+            if not e.accepts(type(body)):
                 raise ParameterError(
                     f"effect {e.kind!r} cannot act on a {body.kind}: "
                     "effects act on rigid bodies"
@@ -114,9 +114,9 @@ class Scene(eqx.Module):
         return dict(_SHAPES[key])
 
     def _example_state(self) -> State:
-        if self.body.kind == "rigid-body":
-            return self.state(omega=jnp.zeros(3))
-        return self.state(theta=0.0)
+        required = {i.state: jnp.zeros(i.shapes[0]) for i in self.body.inputs
+                    if i.role == "initial" and i.required}
+        return self.state(**required)
 
     def check_state(self, y: Mapping[str, Any]) -> State:
         """Check that `y` has exactly this scene's state variables, with the right shapes."""

@@ -30,6 +30,8 @@ def format_value(value) -> str:
         arr = np.asarray(value)
     except (TypeError, ValueError):
         return repr(value)
+    if arr.dtype.kind not in "biuf":  # text, mixed lists: as written
+        return repr(value)
     if arr.ndim == 0:
         return f"{arr.item():g}" if arr.dtype.kind == "f" else repr(arr.item())
     return np.array2string(arr, separator=", ", precision=6, max_line_width=10_000).replace(

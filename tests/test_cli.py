@@ -115,7 +115,7 @@ def test_console_script_fails_cleanly_without_traceback():
     )
     assert proc.returncode == 2
     assert "Traceback" not in proc.stderr
-    assert proc.stderr.strip() == "jaxdyn: error: length=0: must be positive and finite"
+    assert proc.stderr.strip() == "jaxdyn: error: length=0: expected a positive finite number (m)"
 
 
 def test_step_budget_exhaustion_is_an_error_not_a_truncation(capsys):

@@ -67,8 +67,9 @@ def add_scene_arguments(p, *, default_scene: str | None = None) -> None:
         p.add_argument("scene", nargs="?", default=default_scene,
                        help=f"{scene_help} (default: {default_scene})")
     p.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
-                   help="override a parameter, e.g. --set theta0=0.1 or "
-                        "--set inertia=1,2,3 (repeatable)")
+                   help="override a parameter, e.g. --set theta0=0.1, --set inertia=1,2,3 "
+                        "or --set rotor.momentum=0,3,0 (repeatable); 'jaxdyn scenes "
+                        "--parameters' lists every name with its unit and range")
     p.add_argument("--t1", type=float, help="final time (s)")
     p.add_argument("--max-steps", type=bounded_int("--max-steps", 1, 2**31 - 1),
                    default=100_000,

@@ -10,19 +10,27 @@ from ._common import emit, enable_x64, parse_sets
 
 HELP = "fit a scene's parameters and initial state to sampled data (CSV)"
 
-# Columns of a data file, by the body kind of the scene (see `_identify/_presets.py`).
-_DEFAULT_SCENES = {"rigid-body": "torque-free", "falling-rod": "falling-rod"}
+
+
+def _columns_help() -> str:
+    """The data files' columns, from the bodies' declarations (see `_identify/_presets.py`)."""
+    from .._identify._presets import fit_specs
+
+    parts = []
+    for kind, spec in fit_specs().items():
+        cols = ",".join(c for cs in spec.columns.values() for c in cs)
+        extra = ",".join(c for cs in spec.optional_columns.values() for c in cs)
+        parts.append(f"t,{cols} for a {kind}" + (f" (optionally {extra})" if extra else ""))
+    return "; ".join(parts)
 
 
 def add_arguments(parser) -> None:
     parser.add_argument("data", metavar="DATA.csv",
-                        help="samples with a header row: t,wx,wy,wz (rad/s) for a rigid body "
-                             "(optionally q0,q1,q2,q3 for the attitude), t,theta (rad) for the "
-                             "falling rod")
+                        help=f"samples with a header row (t in s): {_columns_help()}; units "
+                             "as in 'jaxdyn scenes --parameters'")
     parser.add_argument("--scene",
-                        help="a built-in scene (torque-free, falling-rod, or any rigid-body "
-                             "scene such as gyrostat) or a TOML scene file; by default chosen "
-                             "from the columns")
+                        help="a built-in scene or a TOML scene file (any scene of a body "
+                             "that can be fitted); by default chosen from the columns")
     parser.add_argument("--set", action="append", default=[], metavar="NAME=VALUE",
                         help="fix a known parameter or initial value instead of fitting it, "
                              "e.g. --set g=9.81, --set theta_dot0=0, --set rotor.momentum=0,3,0 "
@@ -80,15 +88,16 @@ def _read_csv(path: str) -> tuple[list[str], list[list[float]]]:
 
 
 def _choose_scene(header: list[str], path: str) -> str:
-    from .._identify._presets import FIT_SPECS
+    from .._identify._presets import fit_specs
     from .._validation import ParameterError
 
-    for kind, spec in FIT_SPECS.items():
+    specs = {k: s for k, s in fit_specs().items() if s.scene is not None}
+    for spec in specs.values():
         if all(c in header for cols in spec.columns.values() for c in cols):
-            return _DEFAULT_SCENES[kind]
+            return spec.scene
     expected = "; ".join(
-        f"{_DEFAULT_SCENES[k]}: t," + ",".join(c for cols in s.columns.values() for c in cols)
-        for k, s in FIT_SPECS.items()
+        f"{s.scene}: t," + ",".join(c for cols in s.columns.values() for c in cols)
+        for s in specs.values()
     )
     raise ParameterError(f"{path}: columns {','.join(header)} match no scene; expected "
                          f"{expected} (or pass --scene)")
@@ -121,7 +130,7 @@ def run(args) -> int:
     import numpy as np
 
     from .._identify import fit
-    from .._identify._presets import FIT_SPECS
+    from .._identify._presets import fit_specs
     from .._scenefile import load_scene
     from .._validation import ParameterError
 
@@ -135,10 +144,11 @@ def run(args) -> int:
 
     # A first load finds the body kind (and checks the --set names against the scene).
     kind = load_scene(scene_name, sets).scene.body.kind
-    if kind not in FIT_SPECS:
+    specs = fit_specs()
+    if kind not in specs:
         raise ParameterError(f"--scene {scene_name}: a {kind} cannot be fitted; fit supports "
-                             f"{sorted(FIT_SPECS)}")
-    spec = FIT_SPECS[kind]
+                             f"{sorted(specs)}")
+    spec = specs[kind]
     outputs = dict(spec.columns)
     optional = {k: v for k, v in spec.optional_columns.items() if any(c in header for c in v)}
     outputs.update(optional)

@@ -1,4 +1,11 @@
+"""The effects: one file each. Every module here is imported, so an effect that declares its
+`inputs` in a new file is known to scene files and the command with no other edit."""
+
+import importlib
+import pkgutil
+
 from ._gravity_gradient import GravityGradient as GravityGradient
+from ._ring_damper import RingDamper as RingDamper
 from ._rotor import Rotor as Rotor
 from ._torque import ExternalTorque as ExternalTorque
 from ._wheels import (
@@ -6,3 +13,6 @@ from ._wheels import (
     RateDamping as RateDamping,
     Wheels as Wheels,
 )
+
+for _module in pkgutil.iter_modules(__path__):
+    importlib.import_module(f"{__name__}.{_module.name}")

@@ -4,6 +4,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from .._effect import AbstractEffect
+from .._inputs import Input
 from .._rotations import quat_conjugate, quat_rotate
 from .._validation import Check, as_float_array, finite_check, positive_check
 
@@ -25,7 +26,11 @@ class GravityGradient(AbstractEffect):
     phase: Float[Array, ""]
 
     kind: ClassVar[str] = "gravity-gradient"
-    parameter_names: ClassVar[tuple[str, ...]] = ("orbit_rate", "phase")
+    inputs: ClassVar[tuple[Input, ...]] = (
+        Input("orbit_rate", "orbital mean motion n of the circular orbit", "rad/s",
+              bound="positive"),
+        Input("phase", "argument of latitude at t = 0", "rad"),
+    )
     needs_attitude: ClassVar[bool] = True
 
     def __init__(self, orbit_rate: ArrayLike, phase: ArrayLike = 0.0):

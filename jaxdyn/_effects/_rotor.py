@@ -3,6 +3,7 @@ from typing import ClassVar
 from jaxtyping import Array, ArrayLike, Float
 
 from .._effect import AbstractEffect
+from .._inputs import Input
 from .._validation import Check, as_float_array, finite_check
 
 
@@ -21,8 +22,10 @@ class Rotor(AbstractEffect):
     momentum_vector: Float[Array, "3"]
 
     kind: ClassVar[str] = "rotor"
-    parameter_names: ClassVar[tuple[str, ...]] = ("momentum",)
-    parameter_kinds: ClassVar[dict[str, str]] = {"momentum": "momentum"}
+    inputs: ClassVar[tuple[Input, ...]] = (
+        Input("momentum", "the rotor's angular momentum relative to the body, body frame",
+              "kg m^2/s", shapes=((3,),), measures="momentum"),
+    )
     conserves: ClassVar[frozenset[str]] = frozenset({"energy", "momentum"})
 
     def __init__(self, momentum: Float[ArrayLike, "3"]):

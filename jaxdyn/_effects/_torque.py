@@ -5,6 +5,7 @@ import equinox as eqx
 from jaxtyping import Array, ArrayLike, Float
 
 from .._effect import AbstractEffect
+from .._inputs import Input
 from .._rotations import quat_conjugate, quat_rotate
 from .._validation import Check, ParameterError, as_float_array, finite_check
 
@@ -27,7 +28,11 @@ class ExternalTorque(AbstractEffect):
     feedback: bool = eqx.field(static=True)
 
     kind: ClassVar[str] = "torque"
-    parameter_names: ClassVar[tuple[str, ...]] = ("torque",)
+    inputs: ClassVar[tuple[Input, ...]] = (
+        Input("torque", "a constant external torque", "N m", shapes=((3,),)),
+        Input("frame", "the frame of its components ('inertial' makes the scene integrate "
+              "the attitude)", "", type="text", choices=("body", "inertial")),
+    )
 
     def __init__(self, torque: Float[ArrayLike, "3"] | Callable, frame: str = "body",
                  feedback: bool = False):

@@ -22,6 +22,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from .._effect import AbstractEffect
+from .._inputs import Input
 from .._validation import (
     Check,
     ParameterError,
@@ -62,6 +63,29 @@ class Wheels(AbstractEffect):
     damping: Float[Array, " N"] | None
 
     kind = "wheels"
+    inputs = (
+        Input("axes", "spin axes in the body frame (normalised), one row per wheel", "1",
+              shapes=(("N", 3), (3,))),
+        Input("inertia", "axial moments J_i (the body's inertia then excludes them)",
+              "kg m^2", shapes=(("N",), ()), bound="positive"),
+        Input("motor", "constant motor torques (or a control law: see control)", "N m",
+              shapes=(("N",), ())),
+        Input("max_torque", "motor torque limits (commands are clipped)", "N m",
+              shapes=(("N",), ()), bound="positive"),
+        Input("max_speed", "relative spin limits", "rad/s", shapes=(("N",), ()),
+              bound="positive"),
+        Input("damping", "viscous coefficients between wheel and body", "N m s",
+              shapes=(("N",), ()), bound="nonnegative"),
+        Input("control", "control law driving the motors: 'rate-damping' (gain) or "
+              "'attitude-tracking' (target, kp, kd)", "", type="text",
+              choices=("none", "rate-damping", "attitude-tracking")),
+        Input("gain", "rate-damping gain: body torque -gain w", "N m s", bound="nonnegative"),
+        Input("target", "attitude-tracking target quaternion, scalar first", shapes=((4,),)),
+        Input("kp", "attitude-tracking proportional gain", "N m", bound="nonnegative"),
+        Input("kd", "attitude-tracking rate gain", "N m s", bound="nonnegative"),
+        Input("speed", "initial spins relative to the body", "rad/s", shapes=(("N",), ()),
+              role="initial", state="speed"),
+    )
     parameter_names = ("axes", "inertia", "max_torque", "max_speed", "damping")
     state_kinds = {"momentum": "momentum", "work": "energy", "dissipated": "energy"}
 
@@ -97,6 +121,31 @@ class Wheels(AbstractEffect):
         self.max_torque = vector("max_torque", max_torque)
         self.max_speed = vector("max_speed", max_speed)
         self.damping = vector("damping", damping)
+
+    @classmethod
+    def from_inputs(cls, control: str = "none", gain=None, target=None, kp=None, kd=None,
+                    **values: Any) -> "Wheels":
+        """Wheels from scene-file values: `control` names a law whose gains are given by name
+        (`gain` for rate damping; `target`, `kp`, `kd` for attitude tracking)."""
+        given = {"gain": gain, "target": target, "kp": kp, "kd": kd}
+        gains = {k: v for k, v in given.items() if v is not None}
+        law, uses = _LAWS[control]
+        stray = sorted(set(gains) - set(uses))
+        if stray:
+            needs = next(name for name, (_, u) in _LAWS.items() if stray[0] in u)
+            raise ParameterError(
+                f"wheels.{stray[0]} given, but wheels.control={control!r} does not use it: "
+                f"set wheels.control to {needs!r} or remove it")
+        missing = [k for k in uses if k not in gains]
+        if missing:
+            raise ParameterError(f"wheels.{missing[0]} is required with wheels.control="
+                                 f"{control!r}")
+        if law is not None:
+            if "motor" in values:
+                raise ParameterError("wheels.motor: give constant motor torques or a control "
+                                     "law, not both")
+            values["motor"] = law(**gains)
+        return cls(**values)
 
     @property
     def size(self) -> int:
@@ -253,6 +302,13 @@ class AttitudeTracking(eqx.Module):
         sign = jnp.where(dq[0] >= 0, 1.0, -1.0).astype(dtype)
         wanted = -self.kp.astype(dtype) * sign * dq[1:] - self.kd.astype(dtype) * y["omega"]
         return _allocate(wheels, wanted)
+
+
+_LAWS = {  # scene-file control laws: the class and the gains it takes, by name
+    "none": (None, ()),
+    "rate-damping": (RateDamping, ("gain",)),
+    "attitude-tracking": (AttitudeTracking, ("target", "kp", "kd")),
+}
 
 
 def _gain_checks(gains: dict) -> None:
