@@ -15,6 +15,7 @@ from ._effects import (
     AttitudeTracking as AttitudeTracking,
     ExternalTorque as ExternalTorque,
     GravityGradient as GravityGradient,
+    LinearDamping as LinearDamping,
     RateDamping as RateDamping,
     RingDamper as RingDamper,
     Rotor as Rotor,

@@ -5,7 +5,6 @@ import numpy as np
 import pytest
 
 import jaxdyn as jd
-from jaxdyn._effects._linear_damping import LinearDamping
 
 INERTIA = np.array([1.0, 2.0, 3.0])
 
@@ -14,7 +13,7 @@ INERTIA = np.array([1.0, 2.0, 3.0])
 def test_proportional_damping_is_torque_free_motion_slowed_down(scale):
     # c_i = k I_i: w(t) = exp(-k t) w_free(s), s = (1 - exp(-k t)) / k (closed form).
     k = 0.05 * scale
-    scene = jd.Scene(jd.RigidBody(INERTIA), (LinearDamping(k * INERTIA),))
+    scene = jd.Scene(jd.RigidBody(INERTIA), (jd.LinearDamping(k * INERTIA),))
     w0 = np.array([0.3, 1.0, 0.2]) * scale
     ts = jnp.linspace(0.0, 40.0 / scale, 81)
     traj = jd.simulate(scene, scene.state(omega=w0), ts[-1], ts=ts)
@@ -26,7 +25,7 @@ def test_proportional_damping_is_torque_free_motion_slowed_down(scale):
 
 
 def test_energy_lost_equals_the_dissipation():
-    scene = jd.Scene(jd.RigidBody(INERTIA), (LinearDamping([0.01, 0.2, 0.05]),))
+    scene = jd.Scene(jd.RigidBody(INERTIA), (jd.LinearDamping([0.01, 0.2, 0.05]),))
     traj = jd.simulate(scene, scene.state(omega=[0.3, 1.0, 0.2]), 60.0,
                        ts=jnp.linspace(0.0, 60.0, 61))
     energy = np.asarray(traj.energy)
