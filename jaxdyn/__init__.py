@@ -2,6 +2,7 @@
 
 from . import accuracy as accuracy
 from ._body import AbstractBody as AbstractBody
+from ._cache import enable_compilation_cache as enable_compilation_cache
 from ._distributions import (
     AbstractDistribution as AbstractDistribution,
     Fixed as Fixed,
@@ -48,7 +49,7 @@ from ._identify import (
 )
 from ._inertia import inertia_tensor as inertia_tensor, principal_axes as principal_axes
 from ._inputs import Input as Input
-from ._outcome import Outcome as Outcome
+from ._outcome import Outcome as Outcome, SimulationError as SimulationError
 from ._polhode import (
     polhode as polhode,
     separatrix_condition as separatrix_condition,

@@ -68,6 +68,11 @@ class AbstractBody(eqx.Module):
     def checks(self) -> list[Check]:
         """Validity conditions on the parameters."""
 
+    def state_checks(self, y: State) -> list[Check]:
+        """Validity conditions on an initial state beyond finiteness (checked on the host for
+        concrete states, inside the program under a trace)."""
+        return []
+
     def events(self) -> Mapping[str, Callable[[Scalar, State], Scalar]]:
         """Terminating events: name -> function of `(t, y)`, positive while the run goes on.
 

@@ -31,10 +31,22 @@ def _commands() -> dict[str, object]:
 
 def _build_parser(commands) -> argparse.ArgumentParser:
     p = _Parser(prog="jaxdyn", description="Differentiable rigid-body dynamics in JAX.")
+    _cache_arguments(p, None, False)
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
     for name, module in commands.items():
-        module.add_arguments(sub.add_parser(name, help=module.HELP, description=module.HELP))
+        command = sub.add_parser(name, help=module.HELP, description=module.HELP)
+        module.add_arguments(command)
+        # Accepted after the command too; SUPPRESS keeps a value given before it.
+        _cache_arguments(command, argparse.SUPPRESS, argparse.SUPPRESS)
     return p
+
+
+def _cache_arguments(p, dir_default, off_default) -> None:
+    p.add_argument("--cache-dir", metavar="DIR", default=dir_default,
+                   help="JAX's persistent compilation cache (default: $JAXDYN_CACHE_DIR or "
+                        "~/.cache/jaxdyn/jax): a second run of a command skips compiling")
+    p.add_argument("--no-cache", action="store_true", default=off_default,
+                   help="do not use the compilation cache (also JAXDYN_CACHE_DIR=off)")
 
 
 def _fail(message: str, status: int = 2) -> NoReturn:
@@ -60,6 +72,8 @@ def main(argv: list[str] | None = None) -> int:
 
     # The one error boundary: every failure ends in one line on stderr, never a traceback.
     try:
+        if not args.no_cache:
+            _enable_cache(args.cache_dir)
         return commands[args.command].run(args)
     except ParameterError as e:
         _fail(str(e), 2)
@@ -83,6 +97,18 @@ def main(argv: list[str] | None = None) -> int:
         _fail(f"invalid input: {_one_line(e)}", 2)
     except Exception as e:  # anything else: one line naming the cause
         _fail(f"failed: {type(e).__name__}: {_one_line(e)}", 1)
+
+
+def _enable_cache(path: str | None) -> None:
+    from ._cache import enable_compilation_cache
+
+    try:
+        enable_compilation_cache(path)
+    except OSError as e:
+        if path is not None:  # a directory the user named: their input
+            raise
+        sys.stderr.write(f"jaxdyn: warning: compilation cache off ({e.strerror or e}: "
+                         f"{e.filename}); set JAXDYN_CACHE_DIR or --cache-dir\n")
 
 
 def _one_line(error: BaseException) -> str:

@@ -100,5 +100,14 @@ def to_diffrax(code):
     return result
 
 
+class SimulationError(RuntimeError):
+    """A run that failed at run time. `outcome` is the [`jaxdyn.Outcome`][] code; the message
+    names the cause and what to change (`MESSAGES`)."""
+
+    def __init__(self, outcome, message: str | None = None):
+        self.outcome = Outcome(int(outcome))
+        super().__init__(message or MESSAGES[self.outcome])
+
+
 def is_success(code):
     return (code == Outcome.completed) | (code == Outcome.event)

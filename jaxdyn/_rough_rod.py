@@ -351,16 +351,16 @@ class RoughFloorRod(AbstractBody):
         return _select(lifts, self._enter_flight(y), _select(holds, stuck,
                                                              self._enter_slip(y, sigma)))
 
+    def state_checks(self, y):
+        tip = jnp.stack([y["tip_vx"], y["tip_y"], y["tip_vy"]])
+        return [("y0 tip (tip_vx, tip_y, tip_vy)", tip, jnp.any(tip != 0),
+                 "the tip of a rough-floor rod must start at rest on the floor (build y0 "
+                 "with scene.state)")]
+
     def start_mode(self, t0, y0):
         # The tip starts at rest on the floor (as `initial_state` builds it); the records start
         # empty; the rod lying flat ends the run at once.
         zero = jnp.zeros_like(y0["theta"])
-        at_rest = (y0["tip_vx"] == 0) & (y0["tip_y"] == 0) & (y0["tip_vy"] == 0)
-        y0 = eqx.error_if(
-            y0, ~at_rest,
-            "y0: the tip of a rough-floor rod must start at rest on the floor "
-            "(tip_vx = tip_y = tip_vy = 0; build y0 with scene.state)",
-        )
         y = {**y0, **{name: zero for name in _RECORDS}}
         flat = jnp.abs(y0["theta"]) >= jnp.pi / 2
         return _select(flat, y, self._settle(y)), flat

@@ -283,6 +283,7 @@ class Scene(eqx.Module):
             checks += e.checks()
         for name, value in y.items():
             checks.append((f"y0[{name!r}]", value, ~jnp.isfinite(value), "must be finite"))
+        checks += self.body.state_checks(y)
         flags = jnp.stack([jnp.any(violated) for _, _, violated, _ in checks])
         msgs = [f"invalid {field}: {allowed}" for field, _, _, allowed in checks]
         return flags, msgs

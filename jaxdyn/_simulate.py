@@ -11,10 +11,16 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._custom_types import State
-from ._outcome import MESSAGES, NAMES, Outcome, from_diffrax, is_success
+from ._outcome import MESSAGES, NAMES, Outcome, SimulationError, from_diffrax, is_success
 from ._scene import Scene
 from ._tolerance import ScaledPIDController
-from ._validation import ParameterError, as_float_array, format_value, is_concrete
+from ._validation import (
+    ParameterError,
+    as_float_array,
+    format_value,
+    is_concrete,
+    raise_if_violated,
+)
 
 
 class Trajectory(eqx.Module):
@@ -204,6 +210,7 @@ def _prepare_run(scene, y0, t0, t1, ts, solver, rtol, atol, stepsize_controller,
     for name, value in y0.items():
         if is_concrete(value) and not bool(np.all(np.isfinite(np.asarray(value)))):
             raise ParameterError(f"y0[{name!r}]={format_value(value)}: must be finite")
+    raise_if_violated(scene.body.state_checks(y0))
     dtype = jnp.result_type(*jax.tree_util.tree_leaves(y0))
     if not jnp.issubdtype(dtype, jnp.floating):
         raise ParameterError(f"y0 has dtype {dtype}: expected floating point")
@@ -315,7 +322,13 @@ def simulate(
         meter = dfx.NoProgressMeter()
     else:
         meter = progress
-    return _simulate(
+    # Called with concrete values, every input was checked above and the compiled program
+    # carries no runtime check: its outcome code is turned into an error here, on the host
+    # (so the program holds no host callback and JAX's persistent cache can keep it). Under a
+    # trace of the caller's (jit, grad, vmap) the host cannot see the values: the checks ride
+    # in the program (equinox's runtime errors).
+    traced = not is_concrete(scene, y0, t0, t1, ts)
+    traj = _simulate(
         scene, y0, t0, t1, ts,
         solver=solver,
         controller=stepsize_controller,
@@ -325,7 +338,27 @@ def simulate(
         events=events,
         meter=meter,
         dense=dense,
+        checks=traced,
     )
+    if not traced:
+        raise_on_failure(traj)
+    return traj
+
+
+def raise_on_failure(traj: Trajectory) -> None:
+    """Raise [`jaxdyn.SimulationError`][] on the host where a run failed (its message names
+    the cause and what to change)."""
+    code = int(traj.outcome)
+    if code in (Outcome.completed, Outcome.event):
+        return
+    stats = traj.stats
+    switches = traj.scene.body.max_switches
+    if (code == Outcome.max_steps_reached and "num_switches" in stats
+            and int(stats["num_steps"]) <= int(stats["max_steps"])):
+        raise SimulationError(code, f"the run needed more than {switches} mode switches "
+                                    f"before t1 (the most a {traj.scene.body.kind} allows): "
+                                    "shorten t1")
+    raise SimulationError(code)
 
 
 @eqx.filter_jit

@@ -1,6 +1,8 @@
 """The `jaxdyn` command: results against independent references, and bad input."""
 
 import json
+import os
+import re
 import subprocess
 import sys
 
@@ -124,3 +126,41 @@ def test_step_budget_exhaustion_is_an_error_not_a_truncation(capsys):
     assert err.startswith("jaxdyn: error: simulation failed: the step budget --max-steps ran "
                           "out before t1: increase --max-steps")
     assert len(err.strip().splitlines()) == 1
+
+
+def test_every_program_of_a_command_is_cached_on_the_second_run(tmp_path):
+    """JAX's own log: the second invocation compiles nothing (every program a command runs is
+    read from the persistent cache; none is refused for holding a host callback)."""
+    env = {**os.environ, "JAX_LOGGING_LEVEL": "DEBUG", "JAXDYN_CACHE_DIR": str(tmp_path)}
+    logs = []
+    for _ in range(2):
+        proc = subprocess.run([sys.executable, "-m", "jaxdyn._cli", "run", "--json"],
+                              capture_output=True, text=True, timeout=300, env=env)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        logs.append(proc.stderr)
+    first, second = logs
+    assert "host callback" not in first
+    assert re.search(r"Writing .* to persistent compilation cache", first)
+    assert not re.search(r"Writing .* to persistent compilation cache", second)
+    assert not re.search(r"Not writing persistent cache entry", second)
+    hits = re.findall(r"Persistent compilation cache hit for '([^']+)'", second)
+    assert any("_simulate" in h for h in hits), hits
+    timing = json.loads(proc.stdout)["timing"]
+    assert timing["compile_s"] < 0.5 * (timing["compile_s"] + timing["trace_s"] + 1.0)
+
+
+def test_cache_can_be_moved_or_turned_off(tmp_path):
+    moved = tmp_path / "elsewhere"
+    env = {**os.environ, "JAXDYN_CACHE_DIR": "off"}
+    proc = subprocess.run([sys.executable, "-m", "jaxdyn._cli", "scenes"], env=env,
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0
+    proc = subprocess.run([sys.executable, "-m", "jaxdyn._cli", "run", "--t1", "0.1",
+                           "--cache-dir", str(moved), "--json"], capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0 and any(moved.iterdir())
+    off = tmp_path / "off"
+    proc = subprocess.run([sys.executable, "-m", "jaxdyn._cli", "run", "--t1", "0.1",
+                           "--no-cache", "--cache-dir", str(off), "--json"],
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0 and not off.exists()

@@ -428,8 +428,13 @@ def test_moving_tip_fails_at_run_time():
     scene = _scene(0.5, 0.4)
     y0 = scene.state(theta=0.05)
     moving = {**y0, "tip_vx": jnp.ones_like(y0["tip_vx"])}
-    with pytest.raises(RuntimeError, match="the tip of a rough-floor rod must start at rest"):
+    with pytest.raises(jd.ParameterError, match="the tip of a rough-floor rod must start "
+                                                "at rest"):
         jd.simulate(scene, moving, 5.0, **TIGHT)
+    # Known only inside a trace: the same check, at run time.
+    run = jax.jit(lambda y: jd.simulate(scene, y, 5.0, **TIGHT).t_final)
+    with pytest.raises(RuntimeError, match="the tip of a rough-floor rod must start at rest"):
+        run(moving)
 
 
 def test_cli_bad_input(capsys):

@@ -10,6 +10,54 @@ the default error control keeps the local error per step within `rtol` of each v
 scale, and the global error of a well-conditioned run within a few times that."""
 
 
+_COMPILE_EVENTS = {  # JAX's monitoring events, by what the report calls them
+    "/jax/core/compile/jaxpr_trace_duration": "trace_s",
+    "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower_s",
+    "/jax/core/compile/backend_compile_duration": "compile_s",
+}
+_EVENTS: list[tuple[float, str, float]] = []  # (end time, phase, seconds)
+
+
+def compile_clock() -> float:
+    """Start listening to JAX's compilation events (once per process); returns the time."""
+    import time
+
+    if not _EVENTS:
+        import jax
+
+        def listen(event: str, duration: float, **_):
+            if event in _COMPILE_EVENTS:
+                _EVENTS.append((time.perf_counter(), _COMPILE_EVENTS[event], duration))
+
+        jax.monitoring.register_event_duration_secs_listener(listen)
+        _EVENTS.append((0.0, "trace_s", 0.0))
+    return time.perf_counter()
+
+
+def timing_since(t0: float) -> dict[str, float]:
+    """Seconds spent since `t0 = compile_clock()` tracing, lowering and compiling (JAX's own
+    monitoring events, so a command measures itself without running anything twice; a program
+    loaded from the persistent cache costs no compile time), and the rest as `run_s`. Eager
+    operations compiled while tracing nest inside the trace: `run_s` subtracts the union of
+    the intervals, not their sum."""
+    import time
+
+    now = time.perf_counter()
+    out = {"trace_s": 0.0, "lower_s": 0.0, "compile_s": 0.0}
+    spans = []
+    for end, phase, seconds in _EVENTS:
+        if end > t0:
+            out[phase] += seconds
+            spans.append((max(end - seconds, t0), end))
+    busy, reach = 0.0, t0
+    for start, end in sorted(spans):
+        if end > reach:
+            busy += end - max(start, reach)
+            reach = end
+    out["run_s"] = max(now - t0 - busy, 0.0)
+    return out
+
+
 def enable_x64() -> None:
     import jax
 

@@ -7,9 +7,11 @@ from ._common import (
     add_scene_arguments,
     bounded_int,
     check_output_file,
+    compile_clock,
     emit,
     enable_x64,
     parse_sets,
+    timing_since,
     warn_on_disagreement,
 )
 
@@ -39,21 +41,13 @@ def run(args) -> int:
         raise ParameterError(f"--samples={args.samples}: must be at least 2")
     spec = load_scene(args.scene, overrides)
 
-    def go():
-        traj = simulate(spec.scene, spec.y0, spec.t1, rtol=spec.rtol, atol=spec.atol,
-                        max_steps=args.max_steps, dense=True)
-        # Samples span the run as it happened (up to the event time if one ended it).
-        traj = traj.resample(args.samples)
-        jax.block_until_ready(traj)
-        return traj
-
-    t0 = time.perf_counter()
-    go()
-    first = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    traj = go()
-    run_s = time.perf_counter() - t0
+    t0 = compile_clock()
+    traj = simulate(spec.scene, spec.y0, spec.t1, rtol=spec.rtol, atol=spec.atol,
+                    max_steps=args.max_steps, dense=True)
+    # Samples span the run as it happened (up to the event time if one ended it).
+    traj = jax.block_until_ready(traj.resample(args.samples))
     report = traj.report()
+    timing = timing_since(t0)
     warn_on_disagreement(report, spec.rtol)
     out: dict[str, Any] = {
         "scene": spec.name,
@@ -73,11 +67,7 @@ def run(args) -> int:
 
         plot_trajectory(traj, args.plot, title=f"{spec.name}: {spec.description}")
         out["plot"] = args.plot
-    out["timing"] = {
-        "compile_s": max(first - run_s, 0.0),
-        "run_s": run_s,
-        "wall_s": time.perf_counter() - args.t_start,
-    }
+    out["timing"] = {**timing, "wall_s": time.perf_counter() - args.t_start}
     emit({k: v for k, v in out.items() if args.json or k != "scene"}, args.json,
          title=f"{spec.name}: {spec.description}")
     return 0
