@@ -225,9 +225,14 @@ class Scene(eqx.Module):
         return out
 
     def output_names(self) -> tuple[str, ...]:
-        y = self._example_state()
-        shapes = jax.eval_shape(lambda: self.outputs(jnp.zeros(()), y))
-        return tuple(shapes)
+        """Names of the derived outputs (cached per scene structure: no tracing after the
+        first call)."""
+        leaves, treedef = jax.tree_util.tree_flatten(self)
+        key = ("outputs", treedef, tuple(getattr(x, "shape", None) for x in leaves))
+        if key not in _SHAPES:
+            y = self._example_state()
+            _SHAPES[key] = tuple(jax.eval_shape(lambda: self.outputs(jnp.zeros(()), y)))
+        return _SHAPES[key]
 
     def events(self) -> dict[str, Callable[[Scalar, State], Scalar]]:
         """Terminating events: name -> `f(t, y)`; the run ends where one changes sign."""

@@ -1,5 +1,6 @@
 """`simulate`: one entry point over `diffrax.diffeqsolve` for every scene."""
 
+import functools
 from typing import Any
 
 import diffrax as dfx
@@ -10,6 +11,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
+from ._body import AbstractBody
 from ._custom_types import State
 from ._outcome import MESSAGES, NAMES, Outcome, SimulationError, from_diffrax, is_success
 from ._scene import Scene
@@ -217,28 +219,13 @@ def _prepare_run(scene, y0, t0, t1, ts, solver, rtol, atol, stepsize_controller,
     t0 = as_float_array("t0", t0, (), dtype)
     t1 = as_float_array("t1", t1, (), dtype)
     if is_concrete(t0, t1):
-        if not (np.isfinite(float(t0)) and np.isfinite(float(t1))):
-            raise ParameterError(f"t0={float(t0):g}, t1={float(t1):g}: times must be finite")
-        if not float(t1) > float(t0):
-            raise ParameterError(f"t1={float(t1):g}: must be greater than t0={float(t0):g}")
-        span, tiny = float(t1) - float(t0), float(jnp.finfo(dtype).tiny)
-        resolution = 64 * float(jnp.finfo(dtype).eps) * max(abs(float(t0)), abs(float(t1)))
-        if not span >= max(tiny, resolution):
-            raise ParameterError(
-                f"t1={float(t1):g}: the span t1 - t0 = {span:g} is below what "
-                f"{jnp.dtype(dtype).name} resolves here (at least {max(tiny, resolution):.3g})"
-            )
+        _check_span(float(t0), float(t1), dtype)
     if ts is not None:
         ts = as_float_array("ts", ts, None, dtype)
         if ts.ndim != 1 or ts.size == 0:
             raise ParameterError(f"ts has shape {ts.shape}: expected a non-empty 1-D array")
         if is_concrete(ts, t0, t1):
-            a = np.asarray(ts)
-            if np.any(np.diff(a) < 0) or a[0] < float(t0) or a[-1] > float(t1):
-                raise ParameterError(
-                    f"ts from {a[0]:g} to {a[-1]:g}: must be increasing and within "
-                    f"[t0, t1] = [{float(t0):g}, {float(t1):g}]"
-                )
+            _check_ts(np.asarray(ts), float(t0), float(t1))
     if not isinstance(max_steps, int) or max_steps <= 0:
         raise ParameterError(f"max_steps={max_steps!r}: must be a positive integer")
     solver = dfx.Tsit5() if solver is None else solver
@@ -314,6 +301,11 @@ def simulate(
     A [`jaxdyn.Trajectory`][]. Gradients flow through it with respect to the scene's parameters,
     the initial state and the times (including the event time).
     """
+    if (solver is None and stepsize_controller is None and adjoint is None and dt0 is None
+            and progress is False):
+        traj = _fast_simulate(scene, y0, t1, t0, ts, rtol, atol, max_steps, events, dense)
+        if traj is not None:
+            return traj
     y0, t0, t1, ts, solver, stepsize_controller, dt0 = _prepare_run(
         scene, y0, t0, t1, ts, solver, rtol, atol, stepsize_controller, dt0, max_steps)
     if progress is True:
@@ -345,6 +337,110 @@ def simulate(
     return traj
 
 
+_FIELDS = ("ts", "ys", "t_final", "y_final", "event", "result", "outcome", "stats",
+           "interpolation")
+_FAST: dict = {}  # compiled programs of the default settings, by scene structure and options
+_CHECKED: set = set()  # (scene structure, state layout) pairs whose layout was checked
+
+
+def _fast_simulate(scene, y0, t1, t0, ts, rtol, atol, max_steps, events, dense):
+    """`simulate` at the default solver and controller for concrete arrays: the checks on the
+    host in numpy (the layout once per structure), then one `jax.jit` program per structure,
+    dispatched with arrays only. `None` where the general path is needed (traced values,
+    Python functions in the scene, unusual types)."""
+    if not isinstance(scene, Scene) or not isinstance(y0, dict) or not isinstance(
+            max_steps, int) or isinstance(max_steps, bool) or max_steps <= 0:
+        return None
+    leaves, treedef = jax.tree_util.tree_flatten(scene)
+    values = list(y0.values())
+    arrays = (jax.Array, np.ndarray)
+    if not all(isinstance(x, arrays) for x in leaves + values) or not all(
+            isinstance(x, float | int | np.floating) or (isinstance(x, arrays) and np.ndim(x)
+                                                       == 0) for x in (t0, t1)):
+        return None
+    if any(isinstance(x, jax.core.Tracer) for x in leaves + values + [t0, t1, ts]):
+        return None
+    layout = (treedef, tuple((k, np.shape(v), v.dtype) for k, v in y0.items()))
+    if layout not in _CHECKED:
+        y0 = scene.check_state(y0)  # raises on a wrong layout
+        dtype = jnp.result_type(*jax.tree_util.tree_leaves(y0))
+        if not jnp.issubdtype(dtype, jnp.floating) or len({v.dtype for v in y0.values()}) > 1:
+            return None
+        _CHECKED.add(layout)
+    dtype = values[0].dtype
+    host = {k: np.asarray(v) for k, v in y0.items()}
+    for name, value in host.items():
+        if not np.all(np.isfinite(value)):
+            raise ParameterError(f"y0[{name!r}]={format_value(value)}: must be finite")
+    body = scene.body
+    if type(body).state_checks is not AbstractBody.state_checks:  # (a bound method of a
+        raise_if_violated(body.state_checks(y0))                # module costs ~80 us)
+    t0f, t1f = float(t0), float(t1)
+    _check_span(t0f, t1f, dtype)
+    if ts is not None:
+        ts = np.asarray(ts, dtype)
+        _check_ts(ts, t0f, t1f)
+    rtol, atol = _host_tolerances(rtol, atol, dtype)
+    key = (treedef, max_steps, bool(events), bool(dense))
+    program = _FAST.get(key)
+    if program is None:
+        def run(leaves, y0, t0, t1, ts, rtol, atol):
+            scene = jax.tree_util.tree_unflatten(treedef, leaves)
+            traj = _simulate_impl(
+                scene, y0, t0, t1, ts, solver=dfx.Tsit5(),
+                controller=ScaledPIDController(rtol=rtol, atol=atol), dt0=None,
+                max_steps=max_steps, adjoint=dfx.RecursiveCheckpointAdjoint(), events=events,
+                meter=dfx.NoProgressMeter(), dense=dense, checks=False)
+            return tuple(getattr(traj, name) for name in _FIELDS)
+
+        program = _FAST[key] = jax.jit(run)
+    out = program(leaves, y0, np.asarray(t0f, dtype), np.asarray(t1f, dtype), ts,
+                  np.asarray(rtol, dtype), np.asarray(atol, dtype))
+    # Built as equinox unflattens a module (its fields were checked inside the program), not
+    # through `__init__`: the scene is the caller's own, not a copy from the device.
+    traj = object.__new__(Trajectory)
+    object.__setattr__(traj, "scene", scene)
+    for name, value in zip(_FIELDS, out):
+        object.__setattr__(traj, name, value)
+    raise_on_failure(traj)
+    return traj
+
+
+def _check_span(t0: float, t1: float, dtype) -> None:
+    if not (np.isfinite(t0) and np.isfinite(t1)):
+        raise ParameterError(f"t0={t0:g}, t1={t1:g}: times must be finite")
+    if not t1 > t0:
+        raise ParameterError(f"t1={t1:g}: must be greater than t0={t0:g}")
+    span, tiny = t1 - t0, float(jnp.finfo(dtype).tiny)
+    resolution = 64 * float(jnp.finfo(dtype).eps) * max(abs(t0), abs(t1))
+    if not span >= max(tiny, resolution):
+        raise ParameterError(
+            f"t1={t1:g}: the span t1 - t0 = {span:g} is below what "
+            f"{jnp.dtype(dtype).name} resolves here (at least {max(tiny, resolution):.3g})")
+
+
+def _check_ts(a: np.ndarray, t0: float, t1: float) -> None:
+    if a.ndim != 1 or a.size == 0:
+        raise ParameterError(f"ts has shape {a.shape}: expected a non-empty 1-D array")
+    if np.any(np.diff(a) < 0) or a[0] < t0 or a[-1] > t1:
+        raise ParameterError(f"ts from {a[0]:g} to {a[-1]:g}: must be increasing and within "
+                             f"[t0, t1] = [{t0:g}, {t1:g}]")
+
+
+@functools.lru_cache(maxsize=256)
+def _host_tolerances_cached(rtol, atol, dtype_name):
+    r, a = check_tolerances(rtol, atol, jnp.dtype(dtype_name))
+    return float(r), float(a)
+
+
+def _host_tolerances(rtol, atol, dtype):
+    try:
+        return _host_tolerances_cached(rtol, atol, jnp.dtype(dtype).name)
+    except TypeError:  # unhashable values: checked (and refused) uncached
+        r, a = check_tolerances(rtol, atol, dtype)
+        return float(r), float(a)
+
+
 def raise_on_failure(traj: Trajectory) -> None:
     """Raise [`jaxdyn.SimulationError`][] on the host where a run failed (its message names
     the cause and what to change)."""
@@ -361,9 +457,8 @@ def raise_on_failure(traj: Trajectory) -> None:
     raise SimulationError(code)
 
 
-@eqx.filter_jit
-def _simulate(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps, adjoint, events,
-              meter, dense, checks=True) -> Trajectory:
+def _simulate_impl(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps, adjoint,
+                   events, meter, dense, checks=True) -> Trajectory:
     # checks=False (ensembles): failures are left in `Trajectory.result` instead of raised.
     if checks:
         y0 = scene.check(y0)
@@ -427,3 +522,6 @@ def _simulate(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps, adjo
         stats=dict(sol.stats),
         interpolation=sol.interpolation,
     )
+
+
+_simulate = eqx.filter_jit(_simulate_impl)
