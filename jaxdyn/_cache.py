@@ -37,14 +37,21 @@ def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path | No
     The directory in use, or `None` where the cache stays off. Every program is cached
     however quickly it compiled (JAX's default keeps only those above one second).
     """
-    import jax
+    import sys
 
     where = Path(path) if path is not None else default_cache_dir()
     if where is None:
         return None
     where = where.expanduser()
     where.mkdir(parents=True, exist_ok=True)
-    jax.config.update("jax_compilation_cache_dir", str(where))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    settings = {"jax_compilation_cache_dir": str(where),
+                "jax_persistent_cache_min_compile_time_secs": 0.0,
+                "jax_persistent_cache_min_entry_size_bytes": 0}
+    if "jax" in sys.modules:
+        import jax
+
+        for name, value in settings.items():
+            jax.config.update(name, value)
+    else:  # JAX reads these when it is first imported (a command that needs no JAX skips it)
+        os.environ.update({name.upper(): str(value) for name, value in settings.items()})
     return where

@@ -29,13 +29,18 @@ def _commands() -> dict[str, object]:
     return out
 
 
-def _build_parser(commands) -> argparse.ArgumentParser:
+def _build_parser(commands, argv: list[str] | None = None) -> argparse.ArgumentParser:
+    """The parser. Only the command named in `argv` gets its arguments (some derive their help
+    from the bodies' declarations, which imports JAX); the others list their one-line help."""
+    argv = sys.argv[1:] if argv is None else argv
+    chosen = next((a for a in argv if a in commands), None)
     p = _Parser(prog="jaxdyn", description="Differentiable rigid-body dynamics in JAX.")
     _cache_arguments(p, None, False)
     sub = p.add_subparsers(dest="command", required=True, parser_class=_Parser)
     for name, module in commands.items():
         command = sub.add_parser(name, help=module.HELP, description=module.HELP)
-        module.add_arguments(command)
+        if name == chosen:
+            module.add_arguments(command)
         # Accepted after the command too; SUPPRESS keeps a value given before it.
         _cache_arguments(command, argparse.SUPPRESS, argparse.SUPPRESS)
     return p
@@ -66,9 +71,9 @@ def _runtime_message(error: RuntimeError) -> str:
 def main(argv: list[str] | None = None) -> int:
     t_start = time.perf_counter()
     commands = _commands()
-    args = _build_parser(commands).parse_args(argv)
+    args = _build_parser(commands, argv).parse_args(argv)
     args.t_start = t_start
-    from ._validation import ParameterError
+    from ._errors import ParameterError
 
     # The one error boundary: every failure ends in one line on stderr, never a traceback.
     try:

@@ -22,7 +22,7 @@ from typing import Annotated, Any, Literal
 import msgspec
 import numpy as np
 
-from ._validation import ParameterError, format_value
+from ._errors import ParameterError, format_value
 
 Role = Literal["parameter", "initial", "scene"]
 BODIES: dict[str, type] = {}

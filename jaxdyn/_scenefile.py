@@ -19,19 +19,21 @@ Every name can be overridden (`--set NAME=VALUE` on the command line): a paramet
 an effect's parameter as `<type>.<name>` (`rotor.momentum`), and `t1`, `rtol`, `atol`.
 """
 
+from __future__ import annotations
+
 import dataclasses
 import importlib.resources
 import tomllib
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import jax.numpy as jnp
-
-from ._custom_types import State
+from ._errors import ParameterError
 from ._inputs import Input, all_registered, defaults, short_value, validate
-from ._scene import Scene
-from ._validation import ParameterError
+
+if TYPE_CHECKING:  # imported when a scene is built: `jaxdyn scenes` needs no JAX
+    from ._custom_types import State
+    from ._scene import Scene
 
 _RUN_INPUTS = (  # the run settings a scene file (or --set) may give beside the scene
     Input("t1", "final time", "s", bound="positive"),
@@ -138,6 +140,10 @@ def load_scene(name_or_path: str, overrides: Mapping[str, Any] | None = None) ->
     body and each effect declare ([`jaxdyn.Input`][]); invalid ones raise
     [`jaxdyn.ParameterError`][] naming the field, the value and what is allowed.
     """
+    import jax.numpy as jnp
+
+    from ._scene import Scene
+
     bodies, effect_types = all_registered()
     name, data = _read(name_or_path)
     unknown = sorted(set(data) - _TOP_KEYS)

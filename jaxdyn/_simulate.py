@@ -384,7 +384,7 @@ def _fast_simulate(scene, y0, t1, t0, ts, rtol, atol, max_steps, events, dense):
     key = (treedef, max_steps, bool(events), bool(dense))
     program = _FAST.get(key)
     if program is None:
-        def run(leaves, y0, t0, t1, ts, rtol, atol):
+        def simulate_program(leaves, y0, t0, t1, ts, rtol, atol):
             scene = jax.tree_util.tree_unflatten(treedef, leaves)
             traj = _simulate_impl(
                 scene, y0, t0, t1, ts, solver=dfx.Tsit5(),
@@ -393,7 +393,7 @@ def _fast_simulate(scene, y0, t1, t0, ts, rtol, atol, max_steps, events, dense):
                 meter=dfx.NoProgressMeter(), dense=dense, checks=False)
             return tuple(getattr(traj, name) for name in _FIELDS)
 
-        program = _FAST[key] = jax.jit(run)
+        program = _FAST[key] = jax.jit(simulate_program)
     out = program(leaves, y0, np.asarray(t0f, dtype), np.asarray(t1f, dtype), ts,
                   np.asarray(rtol, dtype), np.asarray(atol, dtype))
     # Built as equinox unflattens a module (its fields were checked inside the program), not

@@ -11,10 +11,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-
-class ParameterError(ValueError):
-    """Raised for invalid input: the message names the field, the value and what is allowed."""
-
+from ._errors import (
+    ParameterError as ParameterError,
+    format_value as format_value,
+    message as message,
+)
 
 Check = tuple[str, object, jax.Array | bool, str]
 """`(field, value, violated, allowed)`."""
@@ -23,24 +24,6 @@ Check = tuple[str, object, jax.Array | bool, str]
 def is_concrete(*xs) -> bool:
     """True when none of `xs` is a tracer, so their values can be inspected eagerly."""
     return not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(xs))
-
-
-def format_value(value) -> str:
-    try:
-        arr = np.asarray(value)
-    except (TypeError, ValueError):
-        return repr(value)
-    if arr.dtype.kind not in "biuf":  # text, mixed lists: as written
-        return repr(value)
-    if arr.ndim == 0:
-        return f"{arr.item():g}" if arr.dtype.kind == "f" else repr(arr.item())
-    return np.array2string(arr, separator=", ", precision=6, max_line_width=10_000).replace(
-        "\n", ""
-    )
-
-
-def message(field: str, value, allowed: str) -> str:
-    return f"{field}={format_value(value)}: {allowed}"
 
 
 def raise_if_violated(checks: Iterable[Check]) -> None:

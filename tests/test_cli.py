@@ -144,7 +144,7 @@ def test_every_program_of_a_command_is_cached_on_the_second_run(tmp_path):
     assert not re.search(r"Writing .* to persistent compilation cache", second)
     assert not re.search(r"Not writing persistent cache entry", second)
     hits = re.findall(r"Persistent compilation cache hit for '([^']+)'", second)
-    assert any("_simulate" in h for h in hits), hits
+    assert any("simulate" in h for h in hits), hits
     timing = json.loads(proc.stdout)["timing"]
     assert timing["compile_s"] < 0.5 * (timing["compile_s"] + timing["trace_s"] + 1.0)
 
