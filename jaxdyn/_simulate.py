@@ -103,7 +103,7 @@ class Trajectory(eqx.Module):
     def __getattr__(self, name: str):
         if name.startswith("_"):
             raise AttributeError(name)
-        names = self.scene.output_names()
+        names = Scene.output_names(self.scene)  # (not a bound method: equinox wraps those)
         if name in names:
             return _outputs(self.scene, self.ts, self.ys)[name]
         raise AttributeError(
@@ -133,8 +133,29 @@ def _resample(traj: Trajectory, num: int) -> Trajectory:
     return eqx.tree_at(lambda tr: (tr.ts, tr.ys), traj, (ts, ys))
 
 
-@eqx.filter_jit
 def _outputs(scene: Scene, ts, ys) -> dict[str, Array]:
+    """Every derived output at the times `ts`: one `jax.jit` program per scene structure,
+    called with arrays only (equinox's filtered call where the scene holds Python functions
+    or the values are traced)."""
+    leaves, treedef = jax.tree_util.tree_flatten(scene)
+    arrays = (jax.Array, np.ndarray)
+    if all(isinstance(x, arrays) and not isinstance(x, jax.core.Tracer) for x in leaves):
+        program = _OUTPUTS.get(treedef)
+        if program is None:
+            def outputs_program(leaves, ts, ys):
+                scene = jax.tree_util.tree_unflatten(treedef, leaves)
+                return jax.vmap(scene.outputs)(ts, ys)
+
+            program = _OUTPUTS[treedef] = jax.jit(outputs_program)
+        return program(leaves, ts, ys)
+    return _outputs_filtered(scene, ts, ys)
+
+
+_OUTPUTS: dict = {}
+
+
+@eqx.filter_jit
+def _outputs_filtered(scene: Scene, ts, ys) -> dict[str, Array]:
     return jax.vmap(scene.outputs)(ts, ys)
 
 
