@@ -65,7 +65,7 @@ def _fit_data(path):
     ts = np.linspace(0.0, 20.0, 201)
     sol = solve_ivp(f, (0, 20), [0.3, 1.0, 0.2], t_eval=ts, rtol=1e-12, atol=1e-14,
                     method="DOP853")
-    rows = ["t,wx,wy,wz"] + [f"{t!r},{a!r},{b!r},{c!r}" for t, (a, b, c) in
+    rows = ["t,wx,wy,wz"] + [f"{t:.17g},{a:.17g},{b:.17g},{c:.17g}" for t, (a, b, c) in
                              zip(ts, sol.y.T)]
     path.write_text("\n".join(rows) + "\n")
 
