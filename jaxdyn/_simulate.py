@@ -462,6 +462,20 @@ def _host_tolerances(rtol, atol, dtype):
         return float(r), float(a)
 
 
+def simulate_unchecked(scene: Scene, y0: State, t1, *, t0=0.0, ts=None, solver=None,
+                       stepsize_controller=None, max_steps: int = 100_000, adjoint=None,
+                       events: bool = True, dt0=None) -> Trajectory:
+    """`simulate` for uses that run it inside their own compiled programs (`fit`): concrete
+    arguments are checked as by `simulate`, but a failure at run time is left in
+    `traj.outcome` (no runtime check, no host callback in the caller's program)."""
+    y0, t0, t1, ts, solver, stepsize_controller, dt0 = _prepare_run(
+        scene, y0, t0, t1, ts, solver, None, None, stepsize_controller, dt0, max_steps)
+    return _simulate(scene, y0, t0, t1, ts, solver=solver, controller=stepsize_controller,
+                     dt0=dt0, max_steps=max_steps,
+                     adjoint=dfx.RecursiveCheckpointAdjoint() if adjoint is None else adjoint,
+                     events=events, meter=dfx.NoProgressMeter(), dense=False, checks=False)
+
+
 def raise_on_failure(traj: Trajectory) -> None:
     """Raise [`jaxdyn.SimulationError`][] on the host where a run failed (its message names
     the cause and what to change)."""

@@ -43,8 +43,9 @@ import optimistix as optx
 from jaxtyping import Array, ArrayLike, Float
 
 from .._custom_types import State
+from .._outcome import is_success
 from .._scene import Scene
-from .._simulate import check_tolerances, simulate
+from .._simulate import check_tolerances, simulate_unchecked
 from .._tolerance import ScaledPIDController
 from .._validation import ParameterError, format_value
 from ._parameterisation import AbstractParameterisation, Unconstrained
@@ -89,14 +90,18 @@ class _Problem(eqx.Module):
 
     def predict(self, u: Float[Array, " n"], ts: Float[Array, " N"]) -> dict[str, Array]:
         scene, y0 = self.scene_and_state(u)
-        traj = simulate(
+        traj = simulate_unchecked(
             scene, y0, ts[-1], t0=ts[0], ts=ts,
             # A controller built here, so that the tolerances are arrays (no recompilation).
             stepsize_controller=ScaledPIDController(rtol=self.rtol, atol=self.atol),
             max_steps=self.max_steps, adjoint=dfx.ForwardMode(), events=False,
         )
         out = jax.vmap(scene.outputs)(traj.ts, traj.ys)
-        return {name: out[name] for name in self.outputs}
+        # A failed integration (a trial point too wild to integrate) gives NaN residuals: the
+        # optimiser rejects the point, and a fit that ends there reports not converging. No
+        # runtime check rides in the program, so JAX's persistent cache can keep it.
+        ok = is_success(traj.outcome)
+        return {name: jnp.where(ok, out[name], jnp.nan) for name in self.outputs}
 
     def residuals(self, u, ts, data, weights) -> Float[Array, " m"]:
         """Weighted residuals, in the dtype of `u` (the optimiser's), whatever the dtype of the
