@@ -321,6 +321,15 @@ def simulate(
 
     A [`jaxdyn.Trajectory`][]. Gradients flow through it with respect to the scene's parameters,
     the initial state and the times (including the event time).
+
+    **Raises:**
+
+    [`jaxdyn.ParameterError`][] for invalid input, before any work;
+    [`jaxdyn.SimulationError`][] (its `outcome` a [`jaxdyn.Outcome`][]) where the run fails
+    (step budget, step-size underflow, a non-finite state...), raised on the host from the
+    outcome code that the compiled program returns. Called inside a `jit`, `grad` or `vmap` of
+    the caller's, where the host cannot see the values, the same checks ride in the program
+    (equinox's runtime errors, with the same messages).
     """
     if (solver is None and stepsize_controller is None and adjoint is None and dt0 is None
             and progress is False):
