@@ -64,8 +64,8 @@ def _minimal_scene(tmp_path: Path, cls) -> tuple[Path, str]:
 
 def test_readme_parameter_tables_are_generated_from_the_declarations():
     text = Path(__file__).parents[1].joinpath("README.md").read_text()
-    block = re.search(r"<!-- parameters: generated[^\n]*-->\n(.*?)<!-- parameters: end -->",
-                      text, re.S)
+    block = re.search(r"<!-- --8<-- \[start:parameters\] -->\n(.*?)<!-- --8<-- "
+                      r"\[end:parameters\] -->", text, re.S)
     assert block is not None
     assert block.group(1) == markdown(), "regenerate with: jaxdyn scenes --parameters --markdown"
 

@@ -198,7 +198,7 @@ def _silent(**kwargs) -> None:
 
 class _LevenbergMarquardt(optx.AbstractGaussNewton):
     """Levenberg--Marquardt assembled from optimistix parts, as optimistix documents for
-    custom solvers: the damped Newton descent of [`optimistix.LevenbergMarquardt`][] with a
+    custom solvers: the damped Newton descent of `optimistix.LevenbergMarquardt` with a
     trust region that grows faster (x4 when the model predicts at least half of the
     reduction, instead of x3.5 at 99 %). On the fits of `benchmarks/identify.py` this takes
     about 40 % fewer iterations than the default."""
