@@ -13,8 +13,8 @@ HERE = Path(__file__).resolve().parent
 
 X64 = '''\
 # float64: the checks below compare against closed forms to ~1e-10.
-jax.config.update("jax_enable_x64", True)
-jd.enable_compilation_cache()  # compiled programs are reused by the next kernel'''
+jd.enable_compilation_cache()  # compiled programs are reused by the next kernel
+jax.config.update("jax_enable_x64", True)'''
 
 IMPORTS = '''\
 import jax

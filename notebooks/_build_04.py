@@ -35,8 +35,8 @@ import jaxdyn as jd"""),
     ("code", r"""
 # float64: the checks below compare against closed forms to ~1e-10, and the periods near the
 # separatrix depend on energy differences of 1e-7 relative.
-jax.config.update("jax_enable_x64", True)
-jd.enable_compilation_cache()  # compiled programs are reused by the next kernel"""),
+jd.enable_compilation_cache()  # compiled programs are reused by the next kernel
+jax.config.update("jax_enable_x64", True)"""),
     ("md", r"""
 ## Relative equilibria and their stability
 

@@ -18,8 +18,8 @@ answer is checked against a closed form computed without the integrator."""),
     ("code", r"""
 # float64: flip times are compared with the closed-form period to ~1e-3 s after dozens of seconds
 # of exponential growth of 1e-3 rad/s perturbations, which float32 could not resolve.
-jax.config.update("jax_enable_x64", True)
-jd.enable_compilation_cache()  # compiled programs are reused by the next kernel"""),
+jd.enable_compilation_cache()  # compiled programs are reused by the next kernel
+jax.config.update("jax_enable_x64", True)"""),
     ("md", r"""
 ## How an ensemble is described
 

@@ -32,8 +32,8 @@ import jaxdyn as jd"""),
     ("code", r"""
 # float64: the slip angles are compared with closed forms to ~1e-9, and the energy balance to
 # ~1e-8 of the rod's potential energy.
-jax.config.update("jax_enable_x64", True)
-jd.enable_compilation_cache()  # compiled programs are reused by the next kernel"""),
+jd.enable_compilation_cache()  # compiled programs are reused by the next kernel
+jax.config.update("jax_enable_x64", True)"""),
     ("md", r"""
 ## The pivoting rod and the friction it needs
 
