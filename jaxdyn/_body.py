@@ -34,6 +34,8 @@ class AbstractBody(eqx.Module):
     """Whether effects (torques, rotors, wheels) can act on this body."""
     identifiability: ClassVar[Mapping[str, str]] = {}
     """For `fit`: why a fitted component may be undetermined, by component name."""
+    output_units: ClassVar[Mapping[str, str]] = {}
+    """Units of the derived outputs, by name (for exports)."""
     plain_scene: ClassVar[str | None] = None
     """The built-in scene of this body alone, if any (`jaxdyn fit` picks it from a data
     file's columns)."""

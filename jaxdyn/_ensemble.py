@@ -70,6 +70,31 @@ class Ensemble:
     timing: dict[str, float]
     resumed_chunks: int = 0
     recomputed_chunks: tuple[int, ...] = ()
+    drawn: Callable[[], dict[str, np.ndarray]] | None = dataclasses.field(
+        default=None, repr=False, compare=False)
+
+    def varied(self) -> dict[str, np.ndarray]:
+        """The values each trajectory ran with, name -> array with a leading axis of length
+        `n`: the per-trajectory inputs given (`y0` or `parameters` with a batch axis) and the
+        values drawn for `vary` (recomputed from the key: trajectory `i` draws from
+        `fold_in(key, i)`, so they are the very values it ran with)."""
+        return {} if self.drawn is None else self.drawn()
+
+    def to_dataframe(self):
+        """A pandas `DataFrame`, one row per trajectory: `status` (by name), `steps`, the
+        varied values, then the kept observations (array values split into columns
+        `omega[0]`, ...). Needs the values kept (`keep=True`) and pandas (`jaxdyn[data]`)."""
+        from ._export import ensemble_to_dataframe
+
+        return ensemble_to_dataframe(self)
+
+    def to_xarray(self):
+        """An xarray `Dataset` over the dimension `trajectory`: `status`, `steps`, the varied
+        values and the kept observations as variables (xarray: `jaxdyn[data]`); write it with
+        `.to_netcdf(path)`."""
+        from ._export import ensemble_to_xarray
+
+        return ensemble_to_xarray(self)
 
     status_names = STATUS
 
@@ -721,8 +746,22 @@ def ensemble(
         col += size
     timing = {"compile_s": round(compile_s, 4), "run_s": round(run_s, 4),
               "trajectories_per_s": (computed / run_s) if run_s > 0 else None}
+    given = {k: np.asarray(v) for k, v in {**y_batch, **p_batch}.items()}
+
+    def drawn():
+        out = dict(given)
+        if targets:
+            def one(i):
+                k = jax.random.fold_in(key, i)
+                return {name: dist.sample(jax.random.fold_in(k, name_seed(name)), shape, dtype)
+                        for name, _, _, _, shape, dist in targets}
+
+            out.update({k: np.asarray(v)
+                        for k, v in jax.jit(jax.vmap(one))(jnp.arange(n)).items()})
+        return out
+
     return Ensemble(
-        n=n, status=status, values=values, moments=by_name,
+        drawn=drawn, n=n, status=status, values=values, moments=by_name,
         steps=np.concatenate(steps_parts), reasons=reasons, mode=mode, chunk_size=chunk_size,
         devices=len(devices), timing=timing, resumed_chunks=resumed,
         recomputed_chunks=tuple(store.recomputed) if store is not None else (),

@@ -71,6 +71,10 @@ class RigidBody(AbstractBody):
     )
     accepts_effects: ClassVar[bool] = True
     plain_scene: ClassVar[str | None] = "torque-free"
+    output_units: ClassVar[Mapping[str, str]] = {
+        "omega": "rad/s", "energy": "J", "kinetic_energy": "J", "momentum": "kg m^2/s",
+        "angular_momentum": "kg m^2/s", "momentum_inertial": "kg m^2/s", "euler321": "rad",
+    }
     identifiability: ClassVar[Mapping[str, str]] = {
         "inertia.scale": "the rates of a torque-free body do not change when its inertia "
         "is multiplied by a constant, so only the normalised tensor is fitted (principal "

@@ -48,6 +48,15 @@ def check_angle_rate(dtype, theta, theta_dot, names=("theta", "theta_dot"), shap
     return theta, theta_dot
 
 
+ROD_UNITS = {
+    "theta": "rad", "theta_dot": "rad/s", "theta_ddot": "rad/s^2", "normal_force": "N",
+    "cm_height": "m", "cm_x": "m", "tip_x": "m", "top_x": "m", "top_height": "m",
+    "tip_height": "m", "tip_velocity": "m/s", "energy": "J", "kinetic_energy": "J",
+    "potential_energy": "J", "mechanical_energy": "J", "friction_force": "N",
+    "friction_work": "J",
+}
+"""Units of the rods' derived outputs."""
+
 ROD_INPUTS = (
     Input("length", "rod length L", "m", bound="positive", fit="positive"),
     Input("mass", "rod mass (enters the normal force and the energies only)", "kg",
@@ -107,6 +116,7 @@ class FallingRod(AbstractBody):
     kind: ClassVar[str] = "falling-rod"
     inputs: ClassVar[tuple[Input, ...]] = ROD_INPUTS
     plain_scene: ClassVar[str | None] = "falling-rod"
+    output_units: ClassVar[Mapping[str, str]] = ROD_UNITS
     identifiability: ClassVar[Mapping[str, str]] = {
         "mass": "the mass cancels from the rod's equation of motion (theta(t) depends on "
         "g/L only); with g known the length is determined, the mass is not",

@@ -69,7 +69,7 @@ from jaxtyping import Array, ArrayLike, Float
 from ._body import AbstractBody
 from ._custom_types import Scalar, State
 from ._inputs import Input
-from ._rod import ROD_INPUTS, check_angle_rate, rod_scales, rod_start
+from ._rod import ROD_INPUTS, ROD_UNITS, check_angle_rate, rod_scales, rod_start
 from ._validation import Check, as_float_array, positive_check
 
 STICK, SLIP, FLIGHT = 0.0, 1.0, 2.0
@@ -122,6 +122,7 @@ class RoughFloorRod(AbstractBody):
         Input("mu_s", "static friction coefficient", bound="nonnegative"),
         Input("mu_k", "kinetic friction coefficient, at most mu_s", bound="nonnegative"),
     )
+    output_units: ClassVar[Mapping[str, str]] = ROD_UNITS
     invariant_names: ClassVar[tuple[str, ...]] = ("energy",)
     max_switches: ClassVar[int] = 16
     report_labels: ClassVar[Mapping[str, Mapping[float, str]]] = {

@@ -234,6 +234,13 @@ class Scene(eqx.Module):
             _SHAPES[key] = tuple(jax.eval_shape(lambda: self.outputs(jnp.zeros(()), y)))
         return _SHAPES[key]
 
+    def units(self) -> dict[str, str]:
+        """Units of the state variables and derived outputs, where declared: the body's
+        `output_units`, and the unit of each initial value's state variable."""
+        units = {i.state: i.unit for i in self.body.inputs if i.role == "initial"}
+        units.update(self.body.output_units)
+        return {k: v for k, v in units.items() if v not in ("", "1")}
+
     def events(self) -> dict[str, Callable[[Scalar, State], Scalar]]:
         """Terminating events: name -> `f(t, y)`; the run ends where one changes sign."""
         return dict(self.body.events())

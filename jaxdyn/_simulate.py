@@ -91,6 +91,15 @@ class Trajectory(eqx.Module):
         flags = list(self.event.values())
         return jnp.any(jnp.stack(flags)) if flags else jnp.asarray(False)
 
+    def to_xarray(self):
+        """The run as an xarray `Dataset`: time `t` as the coordinate (the samples reached),
+        every state variable and derived output as a variable (array values with a dimension
+        per axis), units in each variable's attributes where the body declares them, and the
+        outcome in the dataset's attributes. Needs xarray (`pip install "jaxdyn[data]"`)."""
+        from ._export import trajectory_to_xarray
+
+        return trajectory_to_xarray(self, self.scene.units())
+
     def report(self) -> dict[str, Any]:
         """JSON-ready summary of the run (see `Scene.summary`): plain Python numbers and lists,
         with `None` for values that do not exist for this run."""
