@@ -12,6 +12,7 @@ __version__ = "0.1.0"
 _LAZY = {  # public name -> (module, name in it)
     "accuracy": (".accuracy", ""),
     "AbstractBody": ("._body", "AbstractBody"),
+    "animate": ("._animate", "animate"),
     "enable_compilation_cache": ("._cache", "enable_compilation_cache"),
     "AbstractDistribution": ("._distributions", "AbstractDistribution"),
     "Fixed": ("._distributions", "Fixed"),
@@ -117,6 +118,7 @@ def __dir__():
 
 if TYPE_CHECKING:  # the same names, for type checkers and editors
     from . import accuracy as accuracy
+    from ._animate import animate as animate
     from ._body import AbstractBody as AbstractBody
     from ._cache import enable_compilation_cache as enable_compilation_cache
     from ._distributions import (

@@ -88,7 +88,7 @@ def check_output_file(option: str, path: str | None, suffixes=(".png",)) -> None
     import os
     from pathlib import Path
 
-    from .._validation import ParameterError
+    from .._errors import ParameterError
 
     if path is None:
         return

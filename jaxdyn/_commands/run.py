@@ -23,6 +23,9 @@ def add_arguments(run) -> None:
     run.add_argument("--samples", type=bounded_int("--samples", 2, 10**7), default=2001,
                      help="number of saved samples over the run (default 2001)")
     run.add_argument("--plot", metavar="FILE", help="write a PNG figure")
+    run.add_argument("--animate", metavar="FILE",
+                     help="write an animation of the run: FILE.gif, or FILE.mp4 (needs "
+                          "ffmpeg); a rigid body's attitude is integrated for it")
 
 
 def run(args) -> int:
@@ -34,12 +37,16 @@ def run(args) -> int:
     from .._validation import ParameterError
 
     check_output_file("--plot", args.plot)
+    check_output_file("--animate", args.animate, (".gif", ".mp4"))
     overrides = parse_sets(args.set)
     if args.t1 is not None:
         overrides["t1"] = args.t1
     if args.samples < 2:
         raise ParameterError(f"--samples={args.samples}: must be at least 2")
     spec = load_scene(args.scene, overrides)
+    if args.animate and any(i.name == "attitude" for i in spec.scene.body.inputs) \
+            and not spec.scene.attitude:  # the animation draws the attitude
+        spec = load_scene(args.scene, {**overrides, "attitude": True})
 
     t0 = compile_clock()
     traj = simulate(spec.scene, spec.y0, spec.t1, rtol=spec.rtol, atol=spec.atol,
@@ -62,6 +69,19 @@ def run(args) -> int:
         "steps": int(traj.stats["num_steps"]),
         **report,
     }
+    if args.animate:
+        from .._animate import animate
+
+        anim = animate(traj, frames=min(args.samples, 150), title=f"{spec.name}")
+        if args.animate.lower().endswith(".mp4"):
+            from matplotlib import animation
+
+            if not animation.writers.is_available("ffmpeg"):
+                raise ParameterError(f"--animate={args.animate}: .mp4 needs ffmpeg; use .gif")
+            anim.save(args.animate, writer="ffmpeg", dpi=90)
+        else:
+            anim.save(args.animate, writer="pillow", dpi=90)
+        out["animation"] = args.animate
     if args.plot:
         from .._plot import plot_trajectory
 
