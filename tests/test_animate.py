@@ -8,6 +8,8 @@ import pytest
 import jaxdyn as jd
 
 pytest.importorskip("matplotlib")
+# Frames are drawn by hand here, not rendered to a movie: matplotlib's notice is expected.
+pytestmark = pytest.mark.filterwarnings("ignore:Animation was deleted without rendering")
 
 
 def test_rigid_body_turns_with_its_attitude_and_h_stays_fixed(tmp_path):
