@@ -6,6 +6,7 @@ import pkgutil
 
 from ._gravity_gradient import GravityGradient as GravityGradient
 from ._linear_damping import LinearDamping as LinearDamping
+from ._magnetorquers import MagneticTorquers as MagneticTorquers
 from ._ring_damper import RingDamper as RingDamper
 from ._rotor import Rotor as Rotor
 from ._torque import ExternalTorque as ExternalTorque

@@ -5,6 +5,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .._effect import AbstractEffect
 from .._inputs import Input
+from .._orbit import orbit_direction
 from .._rotations import quat_conjugate, quat_rotate
 from .._validation import Check, as_float_array, finite_check, positive_check
 
@@ -45,8 +46,7 @@ class GravityGradient(AbstractEffect):
 
     def direction(self, t, quaternion) -> Float[Array, "3"]:
         """The unit vector `o` to the spacecraft, in the body frame."""
-        angle = self.orbit_rate * t + self.phase
-        o_n = jnp.stack([jnp.cos(angle), jnp.sin(angle), jnp.zeros_like(angle)])
+        o_n = orbit_direction(t, self.orbit_rate, self.phase)  # the orbit in the x-y plane
         return quat_rotate(quat_conjugate(quaternion), o_n.astype(quaternion.dtype))
 
     def torque(self, t, y, own, body) -> Array:
