@@ -62,6 +62,26 @@ def trajectory_to_xarray(traj, units: Mapping[str, str]):
                              "effects": ",".join(traj.scene.labels)})
 
 
+def trajectory_to_dataframe(traj):
+    """See [`jaxdyn.Trajectory.to_dataframe`][]."""
+    pd = _need("pandas")
+    valid = np.asarray(traj.valid)
+    t = np.asarray(traj.ts)[valid]
+    outputs = {k: np.asarray(v)[valid] for k, v in traj.outputs().items()}
+    states = {k: np.asarray(v)[valid] for k, v in traj.ys.items() if k not in outputs}
+    df = pd.DataFrame(_columns({**states, **outputs}, t.size), index=pd.Index(t, name="t"))
+    return df
+
+
+def write(obj, path: str) -> None:
+    """Write a `Trajectory` or an `Ensemble` as CSV (`.csv`, one row per sample or per
+    trajectory) or NetCDF (`.nc`, the xarray dataset; scipy's NetCDF-3 writer)."""
+    if path.lower().endswith(".csv"):
+        obj.to_dataframe().to_csv(path)
+    else:
+        obj.to_xarray().to_netcdf(path, engine="scipy")
+
+
 def ensemble_to_dataframe(ens):
     """See [`jaxdyn.Ensemble.to_dataframe`][]."""
     pd = _need("pandas")

@@ -100,6 +100,14 @@ class Trajectory(eqx.Module):
 
         return trajectory_to_xarray(self, self.scene.units())
 
+    def to_dataframe(self):
+        """The run as a pandas `DataFrame` indexed by time (the samples reached): every state
+        variable and derived output, array values split into columns (`omega[0]`, ...).
+        Needs pandas (`pip install "jaxdyn[data]"`)."""
+        from ._export import trajectory_to_dataframe
+
+        return trajectory_to_dataframe(self)
+
     def report(self) -> dict[str, Any]:
         """JSON-ready summary of the run (see `Scene.summary`): plain Python numbers and lists,
         with `None` for values that do not exist for this run."""

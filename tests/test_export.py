@@ -68,3 +68,26 @@ def test_trajectory_to_xarray_with_units():
     assert ds["normal_force"].attrs["units"] == "N" and ds["theta"].attrs["units"] == "rad"
     assert np.allclose(ds["normal_force"].values, np.asarray(traj.normal_force)[valid])
     assert ds.attrs["outcome"] == "event"
+
+
+def test_commands_write_csv_and_netcdf(tmp_path, capsys):
+    from jaxdyn._cli import main
+
+    run_csv = tmp_path / "run.csv"
+    assert main(["run", "--samples", "21", "--export", str(run_csv), "--json"]) == 0
+    df = pd.read_csv(run_csv, index_col="t")
+    assert len(df) >= 2 and "normal_force" in df.columns and "theta" in df.columns
+    mc_nc = tmp_path / "mc.nc"
+    assert main(["montecarlo", "torque-free", "--n", "16", "--t1", "2", "--export", str(mc_nc),
+                 "--vary", "omega[0]+=normal(0, 1e-3)", "--json"]) == 0
+    ds = xr.open_dataset(str(mc_nc), engine="scipy").load()
+    assert ds.sizes["trajectory"] == 16 and "varied.omega[0]" in ds
+    mc_csv = tmp_path / "mc.csv"
+    assert main(["montecarlo", "torque-free", "--n", "16", "--t1", "2", "--export", str(mc_csv),
+                 "--vary", "omega[0]+=normal(0, 1e-3)", "--json"]) == 0
+    back = pd.read_csv(mc_csv, index_col="trajectory")
+    assert np.allclose(back["varied.omega[0]"], ds["varied.omega[0]"].values, rtol=1e-15)
+    with pytest.raises(SystemExit) as err:
+        main(["run", "--export", str(tmp_path / "run.txt")])
+    assert err.value.code == 2
+    capsys.readouterr()

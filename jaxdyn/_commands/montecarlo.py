@@ -2,7 +2,14 @@
 
 import time
 
-from ._common import add_scene_arguments, bounded_int, emit, enable_x64, parse_sets
+from ._common import (
+    add_scene_arguments,
+    bounded_int,
+    check_output_file,
+    emit,
+    enable_x64,
+    parse_sets,
+)
 
 HELP = "Monte Carlo ensemble of a scene: statistics of its outputs"
 
@@ -26,6 +33,10 @@ def add_arguments(p) -> None:
     p.add_argument("--out", metavar="DIR",
                    help="write each finished chunk here; run again to resume")
     p.add_argument("--progress", action="store_true", help="show a progress bar")
+    p.add_argument("--export", metavar="FILE",
+                   help="write one row per trajectory (status, steps, varied and observed "
+                        "values): FILE.csv or FILE.nc (NetCDF); needs pip install "
+                        "'jaxdyn[data]'")
     p.add_argument("--devices", type=bounded_int("--devices", 1, 4096), default=None,
                    help="CPU devices to shard each chunk across (default: one per core)")
 
@@ -59,6 +70,7 @@ def run(args) -> int:
     from .._scenefile import load_scene
     from .._validation import ParameterError
 
+    check_output_file("--export", args.export, (".csv", ".nc"))
     overrides = parse_sets(args.set)
     if args.t1 is not None:
         overrides["t1"] = args.t1
@@ -88,6 +100,11 @@ def run(args) -> int:
                    chunk_size=args.chunk, out=args.out, progress=args.progress, keep=True)
     out = {"scene": spec.name, "t1": spec.t1, "vary": args.vary, "seed": args.seed,
            **res.report()}
+    if args.export:
+        from .._export import write
+
+        write(res, args.export)
+        out["export"] = args.export
     out["timing"]["wall_s"] = time.perf_counter() - args.t_start
     if args.out:
         out["out"] = args.out

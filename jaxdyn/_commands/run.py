@@ -23,6 +23,9 @@ def add_arguments(run) -> None:
     run.add_argument("--samples", type=bounded_int("--samples", 2, 10**7), default=2001,
                      help="number of saved samples over the run (default 2001)")
     run.add_argument("--plot", metavar="FILE", help="write a PNG figure")
+    run.add_argument("--export", metavar="FILE",
+                     help="write the samples: FILE.csv (one row per time) or FILE.nc (NetCDF, "
+                          "xarray); needs pandas and xarray (pip install 'jaxdyn[data]')")
     run.add_argument("--animate", metavar="FILE",
                      help="write an animation of the run: FILE.gif, or FILE.mp4 (needs "
                           "ffmpeg); a rigid body's attitude is integrated for it")
@@ -38,6 +41,7 @@ def run(args) -> int:
 
     check_output_file("--plot", args.plot)
     check_output_file("--animate", args.animate, (".gif", ".mp4"))
+    check_output_file("--export", args.export, (".csv", ".nc"))
     overrides = parse_sets(args.set)
     if args.t1 is not None:
         overrides["t1"] = args.t1
@@ -69,6 +73,11 @@ def run(args) -> int:
         "steps": int(traj.stats["num_steps"]),
         **report,
     }
+    if args.export:
+        from .._export import write
+
+        write(traj, args.export)
+        out["export"] = args.export
     if args.animate:
         from .._animate import animate
 
