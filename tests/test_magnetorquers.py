@@ -100,3 +100,32 @@ def test_scene_file_and_bad_input(tmp_path):
         jd.load_scene("bdot-detumble", {"magnetorquers.control": "pd"})
     with pytest.raises(jd.ParameterError, match=r"magnetorquers.altitude=-1: expected"):
         jd.load_scene("bdot-detumble", {"magnetorquers.altitude": -1.0})
+
+
+def test_bdot_decay_matches_the_averaged_analysis():
+    """For a spherical body the inertial rates obey the linear law
+    `dw/dt = -(k/J) (1 - b_hat b_hat^T) w`, b_hat the field direction along the orbit. When the
+    damping is slow against the orbit (k/J = n/20), averaging (the first Magnus term) predicts
+    `w(T) = expm(-(k/J) int_0^T (1 - b_hat b_hat^T) dt) w0`: the decay of each direction at the
+    rate that the field's geometry allows. The simulation, with attitude, agrees to 1.3 %
+    (0.3 % at k/J = n/40: the error falls as (k/(J n))^2, as the next Magnus term does)."""
+    from scipy.linalg import expm
+
+    j = 0.05
+    rods = jd.MagneticTorquers(altitude=500e3, inclination=0.9, gain=1.0)
+    n = float(rods.orbit_rate)
+    k = 0.05 * n * j
+    rods = jd.MagneticTorquers(altitude=500e3, inclination=0.9, gain=k)
+    scene = jd.Scene(jd.RigidBody([j, j, j]), (rods,))
+    w0 = np.array([0.01, -0.02, 0.015])
+    t1 = 10 * 2 * np.pi / n
+    traj = jd.simulate(scene, scene.state(omega=w0), t1)
+    w_end = np.asarray(traj.dcm[-1]) @ np.asarray(traj.y_final["omega"])  # inertial frame
+    ts = np.linspace(0.0, t1, 40001)
+    b = np.asarray(jax.vmap(rods.field_inertial)(jnp.asarray(ts)))
+    b_hat = b / np.linalg.norm(b, axis=-1, keepdims=True)
+    integrand = np.eye(3) - b_hat[:, :, None] * b_hat[:, None, :]
+    integral = np.trapezoid(integrand, ts, axis=0)
+    predicted = expm(-(k / j) * integral) @ w0
+    assert np.linalg.norm(w_end) < 0.3 * np.linalg.norm(w0)  # it did decay
+    assert np.linalg.norm(w_end - predicted) < 0.03 * np.linalg.norm(predicted)
