@@ -178,8 +178,8 @@ def calls(repeats):
         sol = hand()
         # jaxdyn's own compiled program, called directly (no host checks, no Trajectory).
         leaves, treedef = jax.tree_util.tree_flatten(sc)
-        key = next(k for k in _simulate._FAST if k[0] == treedef)
-        prog = _simulate._FAST[key]
+        key = next(k for k in _simulate._PROGRAMS if k[:2] == ("simulate", treedef))
+        prog = _simulate._PROGRAMS[key]
         args = (leaves, y, np.asarray(0.0), np.asarray(t1), None, np.asarray(rtol),
                 np.asarray(0.0))
         prog_us = _median_us(lambda prog=prog, args=args: prog(*args), repeats)

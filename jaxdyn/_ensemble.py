@@ -248,12 +248,20 @@ def _targets(scene: Scene, vary: Mapping[str, AbstractDistribution]):
     return tuple(out)
 
 
+def _drawn(targets, key, index, dtype) -> dict[str, jax.Array]:
+    """The values trajectory `index` draws, by varied name: one sub-key per name from
+    `fold_in(key, index)`."""
+    k = jax.random.fold_in(key, index)
+    return {name: dist.sample(jax.random.fold_in(k, name_seed(name)), shape, dtype)
+            for name, _, _, _, shape, dist in targets}
+
+
 def _draw(targets, key, index, y0, params, dtype):
     """The varied values of trajectory `index` applied to its `y0` and parameters."""
-    k = jax.random.fold_in(key, index)
+    drawn = _drawn(targets, key, index, dtype)
     y0, params = dict(y0), dict(params)
-    for name, kind, base, idx, shape, dist in targets:
-        v = dist.sample(jax.random.fold_in(k, name_seed(name)), shape, dtype)
+    for name, kind, base, idx, _, _ in targets:
+        v = drawn[name]
         store = y0 if kind == "state" else params
         old = jnp.asarray(store[base], dtype)
         store[base] = v if idx is None else old.at[idx].set(v)
@@ -748,20 +756,15 @@ def ensemble(
               "trajectories_per_s": (computed / run_s) if run_s > 0 else None}
     given = {k: np.asarray(v) for k, v in {**y_batch, **p_batch}.items()}
 
-    def drawn():
+    def varied():  # recomputed on demand, as the chunks drew them
         out = dict(given)
         if targets:
-            def one(i):
-                k = jax.random.fold_in(key, i)
-                return {name: dist.sample(jax.random.fold_in(k, name_seed(name)), shape, dtype)
-                        for name, _, _, _, shape, dist in targets}
-
-            out.update({k: np.asarray(v)
-                        for k, v in jax.jit(jax.vmap(one))(jnp.arange(n)).items()})
+            draws = jax.jit(jax.vmap(lambda i: _drawn(targets, key, i, dtype)))(jnp.arange(n))
+            out.update({k: np.asarray(v) for k, v in draws.items()})
         return out
 
     return Ensemble(
-        drawn=drawn, n=n, status=status, values=values, moments=by_name,
+        drawn=varied, n=n, status=status, values=values, moments=by_name,
         steps=np.concatenate(steps_parts), reasons=reasons, mode=mode, chunk_size=chunk_size,
         devices=len(devices), timing=timing, resumed_chunks=resumed,
         recomputed_chunks=tuple(store.recomputed) if store is not None else (),

@@ -48,14 +48,19 @@ def _variables(values: Mapping[str, Any], dim: str, units: Mapping[str, str]):
     return out
 
 
+def _samples(traj) -> tuple[np.ndarray, dict[str, np.ndarray]]:
+    """The times reached, and every state variable and derived output at them."""
+    valid = np.asarray(traj.valid)
+    outputs = {k: np.asarray(v)[valid] for k, v in traj.outputs().items()}
+    states = {k: np.asarray(v)[valid] for k, v in traj.ys.items() if k not in outputs}
+    return np.asarray(traj.ts)[valid], {**states, **outputs}
+
+
 def trajectory_to_xarray(traj, units: Mapping[str, str]):
     """See [`jaxdyn.Trajectory.to_xarray`][]."""
     xr = _need("xarray")
-    valid = np.asarray(traj.valid)
-    t = np.asarray(traj.ts)[valid]
-    outputs = {k: np.asarray(v)[valid] for k, v in traj.outputs().items()}
-    states = {k: np.asarray(v)[valid] for k, v in traj.ys.items() if k not in outputs}
-    data = _variables({**states, **outputs}, "t", units)
+    t, values = _samples(traj)
+    data = _variables(values, "t", units)
     return xr.Dataset(data, coords={"t": ("t", t, {"units": "s"})},
                       attrs={"outcome": traj.outcome_name, "t_final": float(traj.t_final),
                              "body": traj.scene.body.kind,
@@ -65,12 +70,8 @@ def trajectory_to_xarray(traj, units: Mapping[str, str]):
 def trajectory_to_dataframe(traj):
     """See [`jaxdyn.Trajectory.to_dataframe`][]."""
     pd = _need("pandas")
-    valid = np.asarray(traj.valid)
-    t = np.asarray(traj.ts)[valid]
-    outputs = {k: np.asarray(v)[valid] for k, v in traj.outputs().items()}
-    states = {k: np.asarray(v)[valid] for k, v in traj.ys.items() if k not in outputs}
-    df = pd.DataFrame(_columns({**states, **outputs}, t.size), index=pd.Index(t, name="t"))
-    return df
+    t, values = _samples(traj)
+    return pd.DataFrame(_columns(values, t.size), index=pd.Index(t, name="t"))
 
 
 def write(obj, path: str) -> None:

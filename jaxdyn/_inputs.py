@@ -195,9 +195,9 @@ _STRUCTS: dict[type, type] = {}
 
 def _struct(cls) -> type:
     if cls not in _STRUCTS:
-        fields = []
+        fields, given = [], defaults(cls)
         for inp in cls.inputs:
-            default = defaults(cls)[inp.name]
+            default = given[inp.name]
             typ = inp.value_type()
             fields.append((inp.name, typ) if default is REQUIRED
                           else (inp.name, typ, msgspec.UNSET))
@@ -244,9 +244,9 @@ def validate(cls, values: dict[str, Any], where: str, prefix: str = "") -> dict[
 
 def table(cls) -> list[dict[str, str]]:
     """One row per input: name, shape and allowed values, unit, default, meaning."""
-    rows = []
+    rows, given = [], defaults(cls)
     for inp in cls.inputs:
-        default = defaults(cls)[inp.name]
+        default = given[inp.name]
         rows.append({
             "name": inp.name,
             "allowed": inp.allowed(),

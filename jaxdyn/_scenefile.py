@@ -213,14 +213,14 @@ def load_scene(name_or_path: str, overrides: Mapping[str, Any] | None = None) ->
 
     body_parts = split(body_cls, body_values)
     body = _build(body_cls, body_parts["parameter"], kind)
-    effect_objs, initial = [], dict(body_parts["initial"])
-    attitude = bool(body_parts["scene"].get("attitude", False)) or any(
-        inp.needs_attitude and inp.name in body_values for inp in body_cls.inputs)
+    effect_objs, initial, options = [], dict(body_parts["initial"]), body_parts["scene"]
+    if any(inp.needs_attitude and inp.name in body_values for inp in body_cls.inputs):
+        options["attitude"] = True  # a value that sets the attitude needs it integrated
     for etype in types:
         parts = split(effect_types[etype], effect_values[etype])
         effect_objs.append(_build(effect_types[etype], parts["parameter"], etype))
         initial.update({f"{etype}.{k}": v for k, v in parts["initial"].items()})
-    scene = Scene(body, tuple(effect_objs), attitude=attitude)
+    scene = Scene(body, tuple(effect_objs), **options)
     try:
         y0 = scene.state(**initial)
     except ParameterError as e:

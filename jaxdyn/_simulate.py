@@ -150,25 +150,41 @@ def _resample(traj: Trajectory, num: int) -> Trajectory:
     return eqx.tree_at(lambda tr: (tr.ts, tr.ys), traj, (ts, ys))
 
 
+_PROGRAMS: dict = {}  # jax.jit programs by (name, scene structure, options)
+
+
+def _concrete_arrays(*values) -> bool:
+    """Whether every value is a concrete array (no tracer, no Python function): a scene made
+    of such leaves can be passed to a `jax.jit` program as its flat leaves."""
+    return all(isinstance(x, jax.Array | np.ndarray) and not isinstance(x, jax.core.Tracer)
+               for x in values)
+
+
+def _structure_program(name: str, treedef, options, build):
+    """The `jax.jit` program `build(treedef)` for one scene structure (and static options),
+    built once: later calls pass only arrays, so dispatch costs what `jax.jit`'s costs."""
+    key = (name, treedef, options)
+    if key not in _PROGRAMS:
+        _PROGRAMS[key] = jax.jit(build(treedef))
+    return _PROGRAMS[key]
+
+
 def _outputs(scene: Scene, ts, ys) -> dict[str, Array]:
     """Every derived output at the times `ts`: one `jax.jit` program per scene structure,
     called with arrays only (equinox's filtered call where the scene holds Python functions
     or the values are traced)."""
     leaves, treedef = jax.tree_util.tree_flatten(scene)
-    arrays = (jax.Array, np.ndarray)
-    if all(isinstance(x, arrays) and not isinstance(x, jax.core.Tracer) for x in leaves):
-        program = _OUTPUTS.get(treedef)
-        if program is None:
-            def outputs_program(leaves, ts, ys):
-                scene = jax.tree_util.tree_unflatten(treedef, leaves)
-                return jax.vmap(scene.outputs)(ts, ys)
+    if not _concrete_arrays(*leaves):
+        return _outputs_filtered(scene, ts, ys)
 
-            program = _OUTPUTS[treedef] = jax.jit(outputs_program)
-        return program(leaves, ts, ys)
-    return _outputs_filtered(scene, ts, ys)
+    def build(treedef):
+        def outputs_program(leaves, ts, ys):
+            scene = jax.tree_util.tree_unflatten(treedef, leaves)
+            return jax.vmap(scene.outputs)(ts, ys)
 
+        return outputs_program
 
-_OUTPUTS: dict = {}
+    return _structure_program("outputs", treedef, (), build)(leaves, ts, ys)
 
 
 @eqx.filter_jit
@@ -247,10 +263,7 @@ def _prepare_run(scene, y0, t0, t1, ts, solver, rtol, atol, stepsize_controller,
     if not isinstance(scene, Scene):
         raise ParameterError(f"scene={scene!r}: expected a jaxdyn.Scene")
     y0 = scene.check_state(y0)
-    for name, value in y0.items():
-        if is_concrete(value) and not bool(np.all(np.isfinite(np.asarray(value)))):
-            raise ParameterError(f"y0[{name!r}]={format_value(value)}: must be finite")
-    raise_if_violated(scene.body.state_checks(y0))
+    _check_state_values(scene, y0)
     dtype = jnp.result_type(*jax.tree_util.tree_leaves(y0))
     if not jnp.issubdtype(dtype, jnp.floating):
         raise ParameterError(f"y0 has dtype {dtype}: expected floating point")
@@ -386,8 +399,18 @@ def simulate(
 
 _FIELDS = ("ts", "ys", "t_final", "y_final", "event", "result", "outcome", "stats",
            "interpolation")
-_FAST: dict = {}  # compiled programs of the default settings, by scene structure and options
 _CHECKED: set = set()  # (scene structure, state layout) pairs whose layout was checked
+
+
+def _check_state_values(scene: Scene, y0) -> None:
+    """Initial values known on the host: finite, and within the body's own state checks
+    (traced values are checked inside the program)."""
+    for name, value in y0.items():
+        if not isinstance(value, jax.core.Tracer) and not np.all(np.isfinite(np.asarray(value))):
+            raise ParameterError(f"y0[{name!r}]={format_value(value)}: must be finite")
+    body = scene.body
+    if type(body).state_checks is not AbstractBody.state_checks:  # (a bound method of a
+        raise_if_violated(body.state_checks(y0))                # module costs ~80 us)
 
 
 def _fast_simulate(scene, y0, t1, t0, ts, rtol, atol, max_steps, events, dense):
@@ -400,12 +423,9 @@ def _fast_simulate(scene, y0, t1, t0, ts, rtol, atol, max_steps, events, dense):
         return None
     leaves, treedef = jax.tree_util.tree_flatten(scene)
     values = list(y0.values())
-    arrays = (jax.Array, np.ndarray)
-    if not all(isinstance(x, arrays) for x in leaves + values) or not all(
-            isinstance(x, float | int | np.floating) or (isinstance(x, arrays) and np.ndim(x)
-                                                       == 0) for x in (t0, t1)):
-        return None
-    if any(isinstance(x, jax.core.Tracer) for x in leaves + values + [t0, t1, ts]):
+    times = [t for t in (t0, t1) if not isinstance(t, float | int | np.floating)]
+    if not _concrete_arrays(*leaves, *values, *times) or any(np.ndim(t) for t in times) \
+            or isinstance(ts, jax.core.Tracer):
         return None
     layout = (treedef, tuple((k, np.shape(v), v.dtype) for k, v in y0.items()))
     if layout not in _CHECKED:
@@ -415,22 +435,14 @@ def _fast_simulate(scene, y0, t1, t0, ts, rtol, atol, max_steps, events, dense):
             return None
         _CHECKED.add(layout)
     dtype = values[0].dtype
-    host = {k: np.asarray(v) for k, v in y0.items()}
-    for name, value in host.items():
-        if not np.all(np.isfinite(value)):
-            raise ParameterError(f"y0[{name!r}]={format_value(value)}: must be finite")
-    body = scene.body
-    if type(body).state_checks is not AbstractBody.state_checks:  # (a bound method of a
-        raise_if_violated(body.state_checks(y0))                # module costs ~80 us)
+    _check_state_values(scene, y0)
     t0f, t1f = float(t0), float(t1)
     _check_span(t0f, t1f, dtype)
     if ts is not None:
         ts = np.asarray(ts, dtype)
         _check_ts(ts, t0f, t1f)
     rtol, atol = _host_tolerances(rtol, atol, dtype)
-    key = (treedef, max_steps, bool(events), bool(dense))
-    program = _FAST.get(key)
-    if program is None:
+    def build(treedef):
         def simulate_program(leaves, y0, t0, t1, ts, rtol, atol):
             scene = jax.tree_util.tree_unflatten(treedef, leaves)
             traj = _simulate_impl(
@@ -440,7 +452,10 @@ def _fast_simulate(scene, y0, t1, t0, ts, rtol, atol, max_steps, events, dense):
                 meter=dfx.NoProgressMeter(), dense=dense, checks=False)
             return tuple(getattr(traj, name) for name in _FIELDS)
 
-        program = _FAST[key] = jax.jit(simulate_program)
+        return simulate_program
+
+    program = _structure_program("simulate", treedef, (max_steps, bool(events), bool(dense)),
+                                 build)
     out = program(leaves, y0, np.asarray(t0f, dtype), np.asarray(t1f, dtype), ts,
                   np.asarray(rtol, dtype), np.asarray(atol, dtype))
     # Built as equinox unflattens a module (its fields were checked inside the program), not

@@ -45,8 +45,6 @@ def run(args) -> int:
     overrides = parse_sets(args.set)
     if args.t1 is not None:
         overrides["t1"] = args.t1
-    if args.samples < 2:
-        raise ParameterError(f"--samples={args.samples}: must be at least 2")
     spec = load_scene(args.scene, overrides)
     if args.animate and any(i.name == "attitude" for i in spec.scene.body.inputs) \
             and not spec.scene.attitude:  # the animation draws the attitude

@@ -140,9 +140,10 @@ class MagneticTorquers(AbstractEffect):
         q = y["quaternion"]
         return quat_rotate(quat_conjugate(q), self.field_inertial(t).astype(q.dtype))
 
-    def dipole(self, t, y) -> Float[Array, "3"]:
-        """The rods' commanded dipole after their limits, plus the residual dipole (A m^2)."""
-        b = self.field(t, y)
+    def dipole(self, t, y, b=None) -> Float[Array, "3"]:
+        """The rods' commanded dipole after their limits, plus the residual dipole (A m^2),
+        in the body-frame field `b` (computed here if not given)."""
+        b = self.field(t, y) if b is None else b
         w = y["omega"]
         dtype = w.dtype
         if self.control == "bdot":
@@ -156,4 +157,5 @@ class MagneticTorquers(AbstractEffect):
         return command + self.residual_dipole.astype(dtype)
 
     def torque(self, t, y, own, body) -> Array:
-        return jnp.cross(self.dipole(t, y), self.field(t, y))
+        b = self.field(t, y)  # once per evaluation: the command and the torque share it
+        return jnp.cross(self.dipole(t, y, b), b)
