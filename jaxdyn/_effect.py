@@ -1,5 +1,6 @@
 """The effect protocol: forces, torques and extra state that a scene may call for."""
 
+from collections.abc import Callable, Mapping
 from typing import Any, ClassVar
 
 import equinox as eqx
@@ -42,6 +43,15 @@ class AbstractEffect(eqx.Module):
     quantities (`"momentum"`, `"energy"`, `"time"`): its error is controlled relative to the
     larger of its magnitude and that reference (see `AbstractBody.natural_scales`). Variables
     not listed are measured against their initial magnitude."""
+
+    uses_stored_momentum: ClassVar[bool] = False
+    """Whether `torque` reads the momentum stored in the scene's devices (wheels, rotors): it
+    is then called with `stored=`, their total angular momentum in the body frame (momentum
+    dumping by magnetic torque rods)."""
+    max_switches: ClassVar[int] = 0
+    """Effects that switch (thrusters turning on and off): the most switches one run may take.
+    A scene with such an effect is run as segments between its `events` (see
+    `jaxdyn._hybrid`), so that each switch falls on a segment's end instead of inside a step."""
 
     def __init_subclass__(cls, **kwargs):
         super().__init_subclass__(**kwargs)
@@ -105,3 +115,19 @@ class AbstractEffect(eqx.Module):
         turns (a constant-speed rotor, free wheels). Effects that exchange momentum or apply
         external torques return `None` and are not splittable."""
         return None
+
+    # -- switching effects (`max_switches > 0`) ------------------------------------------------
+
+    def events(self) -> Mapping[str, Callable[[Scalar, State, State], Scalar]]:
+        """Switch events: name -> function of `(t, y, own)`, positive until the switch (scaled
+        to order one). Where one reaches zero, `switch_mode` changes the effect's own state;
+        an effect's switch never ends the run."""
+        return {}
+
+    def start_mode(self, t0: Scalar, y: State, own: State) -> State:
+        """The effect's own state at the start of a run (a controller's first command)."""
+        return own
+
+    def switch_mode(self, t: Scalar, y: State, own: State, fired: Mapping[str, Array]) -> State:
+        """The effect's own state after the events `fired` (name -> whether it fired here)."""
+        return own

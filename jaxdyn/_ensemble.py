@@ -574,9 +574,10 @@ def ensemble(
     dtype = t0.dtype
     rtol, atol = (float(x) for x in check_tolerances(rtol, atol, dtype))
     if mode != "vmap":
-        if events and scene.body.max_switches > 0:
+        if events and scene.max_switches > 0:
             raise ParameterError(
-                f"mode={mode!r}: a {scene.body.kind} switches modes during a run; use "
+                f"mode={mode!r}: this scene switches during a run (a {scene.body.kind}"
+                f"{''.join(f', {e.kind}' for e in scene.effects if e.max_switches)}); use "
                 "mode='vmap'")
         tableau(solver)
     if devices is None:

@@ -1,17 +1,21 @@
 r"""Hybrid simulation: a run as a sequence of segments separated by mode switches.
 
-A *hybrid* body (one with `max_switches > 0`, such as [`jaxdyn.RoughFloorRod`][]) has modes with
-different equations of motion, the current mode being part of its state. Its `events` are
-functions of `(t, y)`, positive while the current mode lasts (each scaled to order one; an event
-that does not apply to the current mode returns a large positive constant). A run is
+A *hybrid* scene has switches: its body has modes with different equations of motion (one with
+`max_switches > 0`, such as [`jaxdyn.RoughFloorRod`][], the current mode being part of its
+state), or an effect switches (thrusters turning on and off, [`jaxdyn.Thrusters`][]). The
+scene's `events` are functions of `(t, y)`, positive while the current mode lasts (each scaled
+to order one; an event that does not apply to the current mode returns a large positive
+constant). A run is
 
-1. `y = body.start_mode(t0, y0)`: the initial state mapped into a consistent mode (or the end);
+1. `y = scene.start_mode(t0, y0)`: the initial state mapped into a consistent mode (or the end);
 2. a segment: `diffrax.diffeqsolve` from the current time until one of the events reaches zero,
    located by root finding (optimistix bisection) on the dense interpolant;
-3. `y = body.switch_mode(t, y, fired)`: the state mapped into the next mode, or the end of the run;
+3. `y = scene.switch_mode(t, y, fired)`: the state mapped into the next mode, or the end of the
+   run (only a body's events end it);
 
-repeated, up to `max_switches` switches, until `t1` or the end. The whole run is one traced
-computation: it compiles once, parameters stay array leaves, and `jax.jit` and `jax.vmap` work.
+repeated, up to the scene's `max_switches` switches, until `t1` or the end. The whole run is
+one traced computation: it compiles once, parameters stay array leaves, and `jax.jit` and
+`jax.vmap` work.
 Without dense output the loop is a `jax.lax.scan` over `max_switches + 1` segments (those after
 the end are skipped by `lax.cond`), so `jax.grad` works too, through the event times by the
 implicit function theorem in the root finder. With `dense=True` it is a `lax.while_loop` (a
@@ -85,7 +89,6 @@ def simulate_hybrid(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps
     from ._simulate import Trajectory, _check_result, _finite
     from ._tolerance import ScaledPIDController
 
-    body = scene.body
     fns = scene.events()
     names = tuple(fns)
     n_events = len(names)
@@ -115,13 +118,13 @@ def simulate_hybrid(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps
     def ending(t, y, fired):
         """Of the events `fired` that end the run together, those that end it by themselves."""
         alone = jnp.stack([
-            body.switch_mode(t, y, {m: jnp.asarray(m == name) for m in names})[1]
+            scene.switch_mode(t, y, {m: jnp.asarray(m == name) for m in names})[1]
             for name in names
         ])
         return jnp.where(jnp.any(fired & alone), fired & alone, fired)
 
     term = dfx.ODETerm(scene.vector_field)
-    y_start, stop0 = body.start_mode(t0, y0)
+    y_start, stop0 = scene.start_mode(t0, y0)
     fired0 = stop0 & ending(t0, y_start, values(t0, y_start) <= 0)
 
     carry = {
@@ -190,7 +193,7 @@ def simulate_hybrid(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps
         # there (coincident events).
         v = values(t_e, y_e)
         fired = hit & ((v <= fire_tol) | (jnp.arange(n_events) == jnp.argmin(v)))
-        y_sw, stop = body.switch_mode(t_e, y_e, dict(zip(names, fired)))
+        y_sw, stop = scene.switch_mode(t_e, y_e, dict(zip(names, fired)))
 
         new = dict(c)
         new["t"] = t_e
@@ -233,7 +236,7 @@ def simulate_hybrid(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps
             return {**c, "segments": c["segments"] + 1}
 
         c = jax.lax.while_loop(
-            lambda c: ~c["done"] & (c["segments"] <= body.max_switches), step, carry
+            lambda c: ~c["done"] & (c["segments"] <= scene.max_switches), step, carry
         )
     else:
         def segment(c, _):
@@ -241,7 +244,7 @@ def simulate_hybrid(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps
             # then has zero length for the members that ended, and its results are masked).
             return jax.lax.cond(c["done"], lambda c: c, advance, c), None
 
-        c, _ = jax.lax.scan(segment, carry, None, length=body.max_switches + 1)
+        c, _ = jax.lax.scan(segment, carry, None, length=scene.max_switches + 1)
 
     t_final = c["t"]
     y_final = c["y"]
@@ -251,8 +254,7 @@ def simulate_hybrid(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps
                                MESSAGES[Outcome.max_steps_reached])
         y_final = eqx.error_if(
             y_final, ~c["done"],
-            f"the run needed more than {body.max_switches} mode switches before t1 (the most "
-            f"a {body.kind} allows): shorten t1",
+            _too_many_switches(scene),
         )
     else:
         c["result"] = dfx.RESULTS.where((c["steps"] > max_steps) | ~c["done"],
@@ -295,6 +297,16 @@ def simulate_hybrid(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps
         },
         interpolation=interpolation,
     )
+
+
+def _too_many_switches(scene) -> str:
+    """The message of a run that needed more switches than its scene allows."""
+    whose = [f"a {scene.body.kind}"] if scene.body.max_switches else []
+    whose += [f"{label} {e.max_switches}" for label, e in zip(scene.labels, scene.effects)
+              if e.max_switches]
+    return (f"the run needed more than {scene.max_switches} mode switches before t1 (the most "
+            f"{', '.join(whose)} allows): shorten t1"
+            + ("" if scene.body.max_switches else " or raise max_switches"))
 
 
 def _expand(mask, like):

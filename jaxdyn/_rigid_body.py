@@ -159,7 +159,8 @@ class RigidBody(AbstractBody):
     def _internal(self, t, y, effects) -> tuple[Array | None, Array | None, Array | None]:
         h = _sum([e.momentum(t, y, own, self) for e, own in effects])
         hdot = _sum([e.momentum_rate(t, y, own, self) for e, own in effects])
-        tau = _sum([e.torque(t, y, own, self) for e, own in effects])
+        tau = _sum([e.torque(t, y, own, self, stored=h) if e.uses_stored_momentum
+                    else e.torque(t, y, own, self) for e, own in effects])
         return h, hdot, tau
 
     def derivative(self, t: Scalar, y: State, effects: tuple, attitude: bool) -> State:

@@ -242,8 +242,49 @@ class Scene(eqx.Module):
         return {k: v for k, v in units.items() if v not in ("", "1")}
 
     def events(self) -> dict[str, Callable[[Scalar, State], Scalar]]:
-        """Terminating events: name -> `f(t, y)`; the run ends where one changes sign."""
-        return dict(self.body.events())
+        """Events: name -> `f(t, y)`, positive while the run goes on in its mode. The body's
+        (they end the run, or switch a hybrid body's mode), then each switching effect's as
+        `"<label>.<name>"` (they change the effect's own state)."""
+        events = dict(self.body.events())
+        for label, e in zip(self.labels, self.effects):
+            for name, fn in e.events().items():
+                events[f"{label}.{name}"] = _OwnEvent(fn, label)
+        return events
+
+    @property
+    def max_switches(self) -> int:
+        """The most switches one run may take: the body's mode switches and the switching
+        effects' (0: the scene has no switches; it runs as one segment)."""
+        return self.body.max_switches + sum(e.max_switches for e in self.effects)
+
+    def start_mode(self, t0: Scalar, y: State) -> tuple[State, Array]:
+        """The initial state mapped into the body's first mode and each switching effect's
+        first command, and whether the run ends at once (see `AbstractBody.start_mode`)."""
+        y, stop = self.body.start_mode(t0, y)
+        y = dict(y)
+        for label, (e, own) in zip(self.labels, self._own(y)):
+            if e.max_switches:
+                y.update({f"{label}.{k}": v for k, v in e.start_mode(t0, y, own).items()})
+        return y, stop
+
+    def switch_mode(self, t: Scalar, y: State, fired: Mapping[str, Array]) -> tuple[State, Array]:
+        """At the events `fired`: the body's switch (if one of its events fired; it may end
+        the run) and each effect's (see `AbstractBody.switch_mode`,
+        `AbstractEffect.switch_mode`)."""
+        body_names = tuple(self.body.events())
+        stop = jnp.asarray(False)
+        if body_names:
+            hit = jnp.any(jnp.stack([jnp.asarray(fired[n]) for n in body_names]))
+            y_body, body_stop = self.body.switch_mode(t, y, {n: fired[n] for n in body_names})
+            y = jax.tree.map(lambda a, b: jnp.where(hit, a, b), dict(y_body), dict(y))
+            stop = hit & body_stop
+        y = dict(y)
+        for label, (e, own) in zip(self.labels, self._own(y)):
+            mine = {n: fired[f"{label}.{n}"] for n in e.events()}
+            if mine:
+                y.update({f"{label}.{k}": v
+                          for k, v in e.switch_mode(t, y, own, mine).items()})
+        return y, stop
 
     # -- parameters -----------------------------------------------------------------------------
 
@@ -324,3 +365,14 @@ class Scene(eqx.Module):
                 scale = self.body.invariant_scale(name, jnp.linalg.norm(v[0]))
             out[f"{name}_rel_error"] = jnp.max(jnp.where(valid, drift, 0.0)) / scale
         return out
+
+
+class _OwnEvent(eqx.Module):
+    """An effect's event as a function of `(t, y)`: the effect's own state picked out of `y`."""
+
+    fn: Callable
+    label: str = eqx.field(static=True)
+
+    def __call__(self, t, y):
+        prefix = self.label + "."
+        return self.fn(t, y, {k[len(prefix):]: v for k, v in y.items() if k.startswith(prefix)})

@@ -524,12 +524,11 @@ def raise_on_failure(traj: Trajectory) -> None:
     if code in (Outcome.completed, Outcome.event):
         return
     stats = traj.stats
-    switches = traj.scene.body.max_switches
     if (code == Outcome.max_steps_reached and "num_switches" in stats
             and int(stats["num_steps"]) <= int(stats["max_steps"])):
-        raise SimulationError(code, f"the run needed more than {switches} mode switches "
-                                    f"before t1 (the most a {traj.scene.body.kind} allows): "
-                                    "shorten t1")
+        from ._hybrid import _too_many_switches
+
+        raise SimulationError(code, _too_many_switches(traj.scene))
     raise SimulationError(code)
 
 
@@ -543,7 +542,7 @@ def _simulate_impl(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps,
         time_scale = controller.time_scale
     else:  # a controller of the user's: the time scale is still the events'
         time_scale = scene.natural_scales(t0, t1, y0)[1]
-    if events and scene.body.max_switches > 0:
+    if events and scene.max_switches > 0:
         from ._hybrid import simulate_hybrid
 
         return simulate_hybrid(scene, y0, t0, t1, ts, solver=solver, controller=controller,
