@@ -16,6 +16,15 @@ field turns along the orbit every component is damped in turn, down to about the
 Avanzini and Giulietti's gain for the fastest detumbling is
 `k* = 2 n (1 + sin xi_m) J_min` (`n` the orbit rate, `xi_m` the orbit's inclination to the
 geomagnetic equator, `J_min` the smallest principal moment).
+
+Control law `"dump"`, the cross-product law of momentum management (Sidi, *Spacecraft
+Dynamics and Control*, 1997, sec. 7.5; Camillo & Markley 1980): with `h` the momentum stored
+in the scene's wheels and rotors (body frame), `m = k_d (h x b) / |b|^2`, so that
+`tau = m x b = -k_d (h - (h . b_hat) b_hat)`: an external torque against the stored momentum
+across the field. Wheels that hold the attitude absorb it, and their momentum drains at the
+rate `k_d` across the field; along the field nothing can be dumped at that instant, but the
+field turns along the orbit. Every change of the total (body plus wheels) inertial momentum is
+the rods' angular impulse.
 """
 
 from typing import Any, ClassVar
@@ -30,7 +39,7 @@ from .._orbit import EARTH_RADIUS, dipole_field, orbit_direction, orbit_rate
 from .._rotations import quat_conjugate, quat_rotate, safe_norm
 from .._validation import Check, ParameterError, as_float_array, finite_check, positive_check
 
-LAWS = ("bdot", "none")
+LAWS = ("bdot", "dump", "none")
 
 
 class MagneticTorquers(AbstractEffect):
@@ -43,8 +52,10 @@ class MagneticTorquers(AbstractEffect):
     - `inclination`, `node`, `phase`: its inclination, right ascension of the ascending node,
       and argument of latitude at `t = 0` (rad).
     - `earth_angle`: the Greenwich angle at `t = 0` (rad): where the Earth-fixed dipole is.
-    - `control`: `"bdot"` (see the module's notes) or `"none"` (residual dipole only).
+    - `control`: `"bdot"` (detumbling), `"dump"` (momentum dumping for the scene's wheels;
+      see the module's notes) or `"none"` (residual dipole only).
     - `gain`: the B-dot gain `k` (N m s).
+    - `dump_gain`: the dumping gain `k_d` (1/s).
     - `max_dipole`: each rod's dipole limit (A m^2), one value or three; `None`: no limit.
     - `residual_dipole`: the spacecraft's residual dipole (A m^2), three values.
     """
@@ -55,12 +66,14 @@ class MagneticTorquers(AbstractEffect):
     phase: Float[Array, ""]
     earth_angle: Float[Array, ""]
     gain: Float[Array, ""]
+    dump_gain: Float[Array, ""]
     max_dipole: Float[Array, "3"] | None
     residual_dipole: Float[Array, "3"]
     control: str = eqx.field(static=True)
 
     kind: ClassVar[str] = "magnetorquers"
     needs_attitude: ClassVar[bool] = True
+    uses_stored_momentum: ClassVar[bool] = True
     inputs: ClassVar[tuple[Input, ...]] = (
         Input("altitude", "circular orbit altitude above the equatorial radius", "m",
               bound="positive"),
@@ -68,20 +81,23 @@ class MagneticTorquers(AbstractEffect):
         Input("node", "right ascension of the ascending node", "rad"),
         Input("phase", "argument of latitude at t = 0", "rad"),
         Input("earth_angle", "Greenwich angle at t = 0 (where the dipole is)", "rad"),
-        Input("control", "rod control law: 'bdot' (m = k w x b_hat / |b|) or 'none'", "",
+        Input("control", "rod control law: 'bdot' (m = k w x b_hat / |b|), 'dump' "
+              "(m = k_d h x b / |b|^2, h the wheels' momentum) or 'none'", "",
               type="text", choices=LAWS),
         Input("gain", "B-dot gain k", "N m s", bound="nonnegative"),
+        Input("dump_gain", "momentum-dumping gain k_d", "1/s", bound="nonnegative"),
         Input("max_dipole", "dipole limit of each rod", "A m^2", shapes=((3,), ()),
               bound="positive"),
         Input("residual_dipole", "the spacecraft's residual dipole (a disturbance)", "A m^2",
               shapes=((3,),)),
     )
     parameter_names: ClassVar[tuple[str, ...]] = (
-        "altitude", "inclination", "node", "phase", "earth_angle", "gain", "residual_dipole")
+        "altitude", "inclination", "node", "phase", "earth_angle", "gain", "dump_gain",
+        "residual_dipole")
 
     def __init__(self, altitude: ArrayLike, inclination: ArrayLike = 0.9,
                  node: ArrayLike = 0.0, phase: ArrayLike = 0.0, earth_angle: ArrayLike = 0.0,
-                 control: str = "bdot", gain: ArrayLike = 0.0,
+                 control: str = "bdot", gain: ArrayLike = 0.0, dump_gain: ArrayLike = 0.0,
                  max_dipole: ArrayLike | None = None,
                  residual_dipole: Float[ArrayLike, "3"] = (0.0, 0.0, 0.0)):
         if control not in LAWS:
@@ -90,7 +106,8 @@ class MagneticTorquers(AbstractEffect):
         self.altitude = as_float_array("magnetorquers.altitude", altitude, ())
         dtype = self.altitude.dtype
         for name, value in (("inclination", inclination), ("node", node), ("phase", phase),
-                            ("earth_angle", earth_angle), ("gain", gain)):
+                            ("earth_angle", earth_angle), ("gain", gain),
+                            ("dump_gain", dump_gain)):
             setattr(self, name, as_float_array(f"magnetorquers.{name}", value, (), dtype))
         if max_dipole is None:
             self.max_dipole = None
@@ -106,7 +123,7 @@ class MagneticTorquers(AbstractEffect):
     def constructor_args(self) -> dict[str, Any]:
         return {"altitude": self.altitude, "inclination": self.inclination, "node": self.node,
                 "phase": self.phase, "earth_angle": self.earth_angle, "control": self.control,
-                "gain": self.gain, "max_dipole": self.max_dipole,
+                "gain": self.gain, "dump_gain": self.dump_gain, "max_dipole": self.max_dipole,
                 "residual_dipole": self.residual_dipole}
 
     def parameters(self) -> dict[str, Any]:
@@ -117,6 +134,9 @@ class MagneticTorquers(AbstractEffect):
                   finite_check("magnetorquers.residual_dipole", self.residual_dipole),
                   ("magnetorquers.gain", self.gain,
                    ~(jnp.isfinite(self.gain) & (self.gain >= 0)),
+                   "must be finite and non-negative"),
+                  ("magnetorquers.dump_gain", self.dump_gain,
+                   ~(jnp.isfinite(self.dump_gain) & (self.dump_gain >= 0)),
                    "must be finite and non-negative")]
         for name in ("inclination", "node", "phase", "earth_angle"):
             checks.append(finite_check(f"magnetorquers.{name}", getattr(self, name)))
@@ -140,15 +160,18 @@ class MagneticTorquers(AbstractEffect):
         q = y["quaternion"]
         return quat_rotate(quat_conjugate(q), self.field_inertial(t).astype(q.dtype))
 
-    def dipole(self, t, y, b=None) -> Float[Array, "3"]:
+    def dipole(self, t, y, b=None, stored=None) -> Float[Array, "3"]:
         """The rods' commanded dipole after their limits, plus the residual dipole (A m^2),
-        in the body-frame field `b` (computed here if not given)."""
+        in the body-frame field `b` (computed here if not given); `stored` is the momentum
+        the dumping law drains (the scene's wheels and rotors; none: nothing to dump)."""
         b = self.field(t, y) if b is None else b
         w = y["omega"]
         dtype = w.dtype
         if self.control == "bdot":
             norm = safe_norm(b)
             command = self.gain.astype(dtype) * jnp.cross(w, b / norm) / norm
+        elif self.control == "dump" and stored is not None:
+            command = self.dump_gain.astype(dtype) * jnp.cross(stored, b) / jnp.dot(b, b)
         else:
             command = jnp.zeros_like(w)
         if self.max_dipole is not None:
@@ -156,6 +179,6 @@ class MagneticTorquers(AbstractEffect):
             command = jnp.clip(command, -limit, limit)
         return command + self.residual_dipole.astype(dtype)
 
-    def torque(self, t, y, own, body) -> Array:
+    def torque(self, t, y, own, body, stored=None) -> Array:
         b = self.field(t, y)  # once per evaluation: the command and the torque share it
-        return jnp.cross(self.dipole(t, y, b), b)
+        return jnp.cross(self.dipole(t, y, b, stored), b)
