@@ -26,6 +26,7 @@ _LAZY = {  # public name -> (module, name in it)
     "GravityGradient": ("._effects", "GravityGradient"),
     "LinearDamping": ("._effects", "LinearDamping"),
     "MagneticTorquers": ("._effects", "MagneticTorquers"),
+    "Thrusters": ("._effects", "Thrusters"),
     "RateDamping": ("._effects", "RateDamping"),
     "RingDamper": ("._effects", "RingDamper"),
     "Rotor": ("._effects", "Rotor"),
@@ -140,6 +141,7 @@ if TYPE_CHECKING:  # the same names, for type checkers and editors
         RateDamping as RateDamping,
         RingDamper as RingDamper,
         Rotor as Rotor,
+        Thrusters as Thrusters,
         Wheels as Wheels,
     )
     from ._elliptic import (

@@ -9,6 +9,7 @@ from ._linear_damping import LinearDamping as LinearDamping
 from ._magnetorquers import MagneticTorquers as MagneticTorquers
 from ._ring_damper import RingDamper as RingDamper
 from ._rotor import Rotor as Rotor
+from ._thrusters import Thrusters as Thrusters
 from ._torque import ExternalTorque as ExternalTorque
 from ._wheels import (
     AttitudeTracking as AttitudeTracking,
