@@ -164,3 +164,16 @@ def test_cache_can_be_moved_or_turned_off(tmp_path):
                            "--no-cache", "--cache-dir", str(off), "--json"],
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0 and not off.exists()
+
+
+@pytest.mark.parametrize("scene", ["bdot-detumble", "wheels-with-dumping", "thruster-despin"])
+def test_recovery_scenes_run_from_the_command(capsys, scene):
+    """The recovery devices' built-in scenes run from `jaxdyn run` and end where they should:
+    detumbled below the orbit rate, the wheels' momentum dumped, the rates in the dead band."""
+    out = run_json(capsys, "run", scene, "--samples", "50")
+    w = np.abs(np.asarray(out["omega_final"]))
+    if scene == "thruster-despin":
+        assert np.all(w <= 0.002 + 1e-12)  # the scene's dead band
+    else:
+        assert np.all(w < 1e-3)
+    assert out["t_final"] == out["t1"]
