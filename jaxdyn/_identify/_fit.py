@@ -528,6 +528,7 @@ class _Setup:
     weights: Array
     n_obs: int
     dtype: Any
+    scale: float  # residuals are divided by it (see `_setup`)
 
 
 def _setup(scene, ts, data, parameters, initial, y0, sigma, rtol, atol, max_steps) -> _Setup:
@@ -584,17 +585,41 @@ def _setup(scene, ts, data, parameters, initial, y0, sigma, rtol, atol, max_step
         )
     sigma = dict(sigma or {})
     _check_names("sigma", sigma, outputs)
+    # The optimiser sees residuals in units of the data's own size (the RMS of data/sigma),
+    # so that its damping and tolerances act alike in any units; reported losses and
+    # variances are scaled back.
+    sigmas = {k: np.asarray(sigma.get(k, 1.0), dtype) for k in outputs}
+    scale = float(np.sqrt(np.mean(np.concatenate(
+        [np.ravel(obs[k] / sigmas[k]) ** 2 for k in outputs]))))
+    scale = scale if np.isfinite(scale) and scale > 0 else 1.0
     ts_p, obs_p, weights = _pad(ts, obs)
     problem = _Problem(
         scene=scene, y0=y0, names=names, is_state=tuple(n in initial for n in names),
         maps=maps, sizes=tuple(m.size() for m in maps), outputs=outputs,
-        sigma=tuple(jnp.asarray(sigma.get(k, 1.0), dtype) for k in outputs),
+        sigma=tuple(jnp.asarray(sigmas[k] * scale, dtype) for k in outputs),
         rtol=rtol, atol=atol, max_steps=max_steps,
         dtype=dtype,
     )
     return _Setup(problem, u0, components, ts, obs, jnp.asarray(ts_p),
                   {k: jnp.asarray(v) for k, v in obs_p.items()}, jnp.asarray(weights), n_obs,
-                  dtype)
+                  dtype, scale)
+
+
+_TURNS = 10.0  # the first horizon of a long record, in natural time units (1/W)
+
+
+def _auto_horizons(problem, u0, ts) -> tuple[float, ...]:
+    """Continuation spans for a record of this length: `(0.25, 0.5, 1)` for a short record,
+    else spans doubling from `_TURNS` natural time units (the scene's time scale `1/W` at the
+    starting point) to the whole record."""
+    scene, y0 = _scene_and_state(problem, u0)
+    span = float(ts[-1] - ts[0])
+    time_scale = float(scene.natural_scales(ts[0], ts[-1], y0)[1])
+    first = _TURNS * time_scale
+    if not np.isfinite(first) or first <= 0 or span <= 4 * first:
+        return (0.25, 0.5, 1.0)
+    k = int(np.ceil(np.log2(span / first)))
+    return tuple(float(first * 2.0**i / span) for i in range(k)) + (1.0,)
 
 
 def fit(
@@ -613,7 +638,7 @@ def fit(
     adam_steps: int = 0,
     learning_rate: float = 0.05,
     max_iter: int = 200,
-    horizons: Sequence[float] = (0.25, 0.5, 1.0),
+    horizons: Sequence[float] | None = None,
     tol: float | None = None,
     rtol: float | None = None,
     atol: float | None = None,
@@ -655,6 +680,11 @@ def fit(
       these fractions of the span in turn (integrating only that far), the last of which must
       be 1. A short record has few local minima, so its optimum is found from far away, and
       it is a good start for a longer one (a record over many periods otherwise has many).
+      Default: chosen by the record's length in the scene's natural time `1/W` (`W` the
+      largest starting rate): `(0.25, 0.5, 1)` for a record of up to `4 H` with
+      `H = 10 / W` (about one and a half turns), otherwise spans doubling from `H` to the
+      whole record, so that each stage starts from an optimum whose prediction is still in
+      phase over the next span.
     - `tol`: convergence tolerance of the polishing method on the whole record (default
       `1e-8` in float64, `1e-5` in float32); shorter horizons use `max(tol, 1e-4)`.
     - `rtol`, `atol`, `max_steps`: of the integration ([`jaxdyn.simulate`][]).
@@ -697,11 +727,14 @@ def fit(
         if not isinstance(value, int) or value < low:
             kind = "a positive" if low else "a non-negative"
             raise ParameterError(f"{field}={value!r}: must be {kind} integer")
-    horizons = tuple(float(h) for h in horizons)
-    if not horizons or horizons[-1] != 1.0 or any(not 0 < h <= 1 for h in horizons):
-        raise ParameterError(f"horizons={horizons}: fractions in (0, 1], the last one 1")
+    if horizons is not None:
+        horizons = tuple(float(h) for h in horizons)
+        if not horizons or horizons[-1] != 1.0 or any(not 0 < h <= 1 for h in horizons):
+            raise ParameterError(f"horizons={horizons}: fractions in (0, 1], the last one 1")
     setup = _setup(scene, ts, data, parameters, initial, y0, sigma, rtol, atol, max_steps)
     problem, u0, ts, obs = setup.problem, setup.u0, setup.ts, setup.obs
+    if horizons is None:
+        horizons = _auto_horizons(problem, u0, ts)
     ts_p, obs_p, weights = setup.ts_p, setup.obs_p, setup.weights
     maps, components, n_obs, dtype = problem.maps, setup.components, setup.n_obs, setup.dtype
     outputs = problem.outputs
@@ -789,7 +822,8 @@ def fit(
         # same compiled functions: `sigma` is an array of the problem).
         rms = _rms_by_output(np.asarray(r), obs, ts_p.size, problem.sigma)
         problem = eqx.tree_at(lambda p: p.sigma, problem,
-                              tuple(jnp.asarray(rms[k], dtype) for k in outputs))
+                              tuple(jnp.asarray(rms[k] * setup.scale, dtype)
+                                    for k in outputs))
         again = _run_start(u, horizons=(1.0,), warm_up=False)
         best = {**again, "history": np.concatenate([best["history"], again["history"]]),
                 "stages": best["stages"] + tuple(best["iterations"] + s_
@@ -815,13 +849,14 @@ def fit(
         lines.append(f"only a combination of {', '.join(involved)} is determined by the data "
                      f"(condition number {sv[0] / sv[n_free - 1]:.1e})")
     scene_fit, y0_fit = _scene_and_state(problem, u)
+    c2 = setup.scale**2  # the optimiser's losses back in units of data/sigma
     return FitResult(
         values=values, std=std, identifiable=identifiable, notes=tuple(lines),
         scene=scene_fit, y0=y0_fit, u=u, components=components, covariance=cov,
-        loss=float(loss), residual_rms=float(np.sqrt(2 * loss / n_obs)),
+        loss=float(loss) * c2, residual_rms=float(np.sqrt(2 * loss * c2 / n_obs)),
         residual_rms_by_output=_rms_by_output(np.asarray(r), obs, ts_p.size, problem.sigma),
-        noise_variance=float(s2), converged=best["converged"], iterations=best["iterations"],
-        history=best["history"], stages=best["stages"],
-        restart_losses=np.array([run["loss"] for run in runs]),
+        noise_variance=float(s2) * c2, converged=best["converged"],
+        iterations=best["iterations"], history=best["history"] * c2, stages=best["stages"],
+        restart_losses=np.array([run["loss"] for run in runs]) * c2,
     )
 
