@@ -47,6 +47,10 @@ class AbstractBody(eqx.Module):
     A hybrid body is simulated as a sequence of segments (see `jaxdyn._hybrid`): each segment is
     integrated until one of the body's `events` reaches zero, located by root finding, and then
     `switch_mode` maps the state into the next mode or ends the run."""
+    residual_kinds: ClassVar[Mapping[str, str]] = {}
+    """How `fit` compares an output with its measurements, where not by difference:
+    `"rotation"` for an attitude (the rotation between the two, whatever the sign of a
+    measured quaternion)."""
     report_labels: ClassVar[Mapping[str, Mapping[float, str]]] = {}
     """Summary keys whose values are codes, reported by name (`{1.0: "forward"}`)."""
 

@@ -54,6 +54,7 @@ class RigidBody(AbstractBody):
     inertia: Float[Array, "3"] | Float[Array, "3 3"]
 
     kind: ClassVar[str] = "rigid-body"
+    residual_kinds: ClassVar[dict[str, str]] = {"quaternion": "rotation"}
     inputs: ClassVar[tuple[Input, ...]] = (
         Input("inertia", "3 principal moments, or the tensor (9 entries row by row) with "
               "products of inertia in the body frame; each principal moment at most the sum "

@@ -44,6 +44,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .._custom_types import State
 from .._outcome import is_success
+from .._rotations import quat_conjugate, quat_multiply
 from .._scene import Scene
 from .._simulate import check_tolerances, simulate_unchecked
 from .._tolerance import ScaledPIDController
@@ -65,6 +66,7 @@ class _Problem(eqx.Module):
     maps: tuple[AbstractParameterisation, ...]
     sizes: tuple[int, ...] = eqx.field(static=True)
     outputs: tuple[str, ...] = eqx.field(static=True)
+    kinds: tuple[str, ...] = eqx.field(static=True)  # per output: "value" or "rotation"
     sigma: tuple[Array, ...]
     rtol: Array
     atol: Array
@@ -82,7 +84,8 @@ class _Problem(eqx.Module):
 
     def scene_and_state(self, u: Float[Array, " n"]) -> tuple[Scene, State]:
         values = self.values(u)
-        params = {n: v for n, v, s in zip(self.names, values.values(), self.is_state) if not s}
+        params = {n: v for n, v, s in zip(self.names, values.values(), self.is_state)
+                  if not s and not n.startswith(_BIAS)}
         y0 = dict(self.y0)
         y0.update({n: v for n, v, s in zip(self.names, values.values(), self.is_state) if s})
         scene = self.scene.replace(params) if params else self.scene
@@ -107,12 +110,36 @@ class _Problem(eqx.Module):
         """Weighted residuals, in the dtype of `u` (the optimiser's), whatever the dtype of the
         simulation (the data's)."""
         pred = self.predict(u, ts)
+        values = self.values(u)
         parts = []
-        for name, sigma in zip(self.outputs, self.sigma):
-            r = (pred[name] - data[name]) / sigma
+        for name, kind, sigma in zip(self.outputs, self.kinds, self.sigma):
+            p = pred[name]
+            if _BIAS + name in values:  # a sensor's constant bias: it reads output + bias
+                p = p + values[_BIAS + name]
+            if kind == "rotation":
+                r = _rotation_error(p, data[name]) / sigma
+            else:
+                r = (p - data[name]) / sigma
             r = r.reshape(r.shape[0], -1) * jnp.sqrt(weights)[:, None]
             parts.append(r.ravel())
         return jnp.concatenate(parts).astype(u.dtype)
+
+
+_BIAS = "bias."  # fitted sensor biases are named "bias.<output>"
+
+
+def _rotation_error(q, q_measured):
+    """The rotation from each measured attitude to the predicted one, as the rotation vector
+    `2 sign(dq_0) dq_vec` of `dq = q_measured^* (x) q` (rad; small-angle; `q` and `-q` are the
+    same attitude, so a measured quaternion's sign does not matter)."""
+    dq = jax.vmap(quat_multiply)(jax.vmap(quat_conjugate)(q_measured), q)
+    sign = jnp.where(dq[:, :1] < 0, -1.0, 1.0).astype(dq.dtype)
+    return 2 * sign * dq[:, 1:]
+
+
+def _width(kind: str, shape) -> int:
+    """Residuals per sample of an output of this kind and sample shape."""
+    return 3 if kind == "rotation" else int(np.prod(shape))
 
 
 # -- progress ---------------------------------------------------------------------------------
@@ -415,13 +442,14 @@ class FitResult:
     restart_losses: np.ndarray
 
 
-def _rms_by_output(r, obs, padded, sigmas):
+def _rms_by_output(r, obs, padded, sigmas, kinds):
     out, start = {}, 0
-    for (name, d), sigma in zip(obs.items(), sigmas):
-        width = int(np.prod(d.shape[1:]))
+    for (name, d), sigma, kind in zip(obs.items(), sigmas, kinds):
+        width = _width(kind, d.shape[1:])
         part = r[start:start + padded * width]
         start += padded * width
-        out[name] = float(np.sqrt(np.sum(part**2) / d.size) * np.max(np.asarray(sigma)))
+        out[name] = float(np.sqrt(np.sum(part**2) / (d.shape[0] * width))
+                          * np.max(np.asarray(sigma)))
     return out
 
 
@@ -531,7 +559,8 @@ class _Setup:
     scale: float  # residuals are divided by it (see `_setup`)
 
 
-def _setup(scene, ts, data, parameters, initial, y0, sigma, rtol, atol, max_steps) -> _Setup:
+def _setup(scene, ts, data, parameters, initial, y0, sigma, rtol, atol, max_steps,
+           bias=()) -> _Setup:
     """Check the inputs and build the residual function, the starting point and padded data."""
     if not isinstance(scene, Scene):
         raise ParameterError(f"scene={scene!r}: expected a jaxdyn.Scene")
@@ -539,9 +568,11 @@ def _setup(scene, ts, data, parameters, initial, y0, sigma, rtol, atol, max_step
         raise ParameterError("parameters: expected a mapping of names to parameterisations")
     if not isinstance(initial, Mapping):
         initial = {name: Unconstrained() for name in initial}
+    if not isinstance(bias, Mapping):
+        bias = {name: Unconstrained() for name in bias}
     if not isinstance(data, Mapping) or not data:
         raise ParameterError("data: expected a mapping of output names to arrays")
-    for name, m in {**parameters, **initial}.items():
+    for name, m in {**parameters, **initial, **bias}.items():
         if not isinstance(m, AbstractParameterisation):
             raise ParameterError(f"{name}: {m!r} is not a parameterisation")
     _check_names("parameters", parameters, scene.parameters())
@@ -551,6 +582,12 @@ def _setup(scene, ts, data, parameters, initial, y0, sigma, rtol, atol, max_step
     dtype = _dtype(ts, data)
     shapes = _output_shapes(scene, dtype)
     _check_names("data", outputs, shapes)
+    _check_names("bias", bias, outputs)
+    kinds = tuple(scene.body.residual_kinds.get(k, "value") for k in outputs)
+    rotations = [k for k, kind in zip(outputs, kinds) if kind == "rotation" and k in bias]
+    if rotations:
+        raise ParameterError(f"bias={rotations}: an attitude has no additive bias; allowed "
+                             f"are {[k for k in outputs if k not in rotations]}")
     recast = {k: v.astype(dtype) for k, v in scene.parameters().items()
               if isinstance(v, jax.Array) and jnp.issubdtype(v.dtype, jnp.floating)
               and v.dtype != dtype}
@@ -570,14 +607,16 @@ def _setup(scene, ts, data, parameters, initial, y0, sigma, rtol, atol, max_step
     y0 = {k: jnp.asarray(v, dtype) for k, v in scene.check_state(y0).items()}
     current = scene.parameters()
     starting = {**{k: jnp.asarray(current[k], dtype) for k in parameters},
-                **{k: y0[k] for k in initial}}
-    maps = tuple(m.bind(starting[k]) for k, m in {**parameters, **initial}.items())
-    names = tuple(parameters) + tuple(initial)
+                **{k: y0[k] for k in initial},
+                **{_BIAS + k: jnp.zeros(shapes[k], dtype) for k in bias}}
+    fitted = {**parameters, **initial, **{_BIAS + k: m for k, m in bias.items()}}
+    maps = tuple(m.bind(starting[k]) for k, m in fitted.items())
+    names = tuple(fitted)
     components = sum((m.components(n) for n, m in zip(names, maps)), ())
     # The optimiser works in the default float type (optimistix's trust region does), the
     # simulation in the dtype of the data; results are reported in the latter.
     u0 = _starting_point(maps, starting, names)
-    n_obs = n_samples * sum(int(np.prod(obs[k].shape[1:])) for k in outputs)
+    n_obs = n_samples * sum(_width(kind, obs[k].shape[1:]) for k, kind in zip(outputs, kinds))
     if n_obs <= u0.size:
         raise ParameterError(
             f"data has {n_samples} samples ({n_obs} values): more than {u0.size} values are "
@@ -595,7 +634,7 @@ def _setup(scene, ts, data, parameters, initial, y0, sigma, rtol, atol, max_step
     ts_p, obs_p, weights = _pad(ts, obs)
     problem = _Problem(
         scene=scene, y0=y0, names=names, is_state=tuple(n in initial for n in names),
-        maps=maps, sizes=tuple(m.size() for m in maps), outputs=outputs,
+        maps=maps, sizes=tuple(m.size() for m in maps), outputs=outputs, kinds=kinds,
         sigma=tuple(jnp.asarray(sigmas[k] * scale, dtype) for k in outputs),
         rtol=rtol, atol=atol, max_steps=max_steps,
         dtype=dtype,
@@ -629,6 +668,7 @@ def fit(
     *,
     parameters: Mapping[str, AbstractParameterisation],
     initial: Mapping[str, AbstractParameterisation] | Sequence[str] = (),
+    bias: Mapping[str, AbstractParameterisation] | Sequence[str] = (),
     y0: State | None = None,
     sigma: Mapping[str, ArrayLike] | None = None,
     restarts: int = 8,
@@ -661,6 +701,11 @@ def fit(
       [`jaxdyn.Unconstrained`][]); the starting value is the scene's current value.
     - `initial`: the initial-state variables to fit (names of `scene.state_shapes()`), as a
       sequence ([`jaxdyn.Unconstrained`][]) or a mapping to parameterisations.
+    - `bias`: outputs read by a sensor with a constant unknown bias (a gyro's `"omega"`): the
+      data are taken as output plus bias, and each bias is fitted (from zero) and reported as
+      `"bias.<output>"`. Attitudes (`"quaternion"`, from a star tracker) are compared as
+      rotations instead: the residual is the rotation vector from the measured attitude to
+      the predicted one, whatever the measured quaternion's sign.
     - `y0`: the starting (and, for variables not fitted, known) initial state; by default the
       first sample of each observed state variable and the scene's defaults for the rest.
     - `sigma`: noise scale of each output (weights `1/sigma`); needed only to combine outputs
@@ -731,7 +776,8 @@ def fit(
         horizons = tuple(float(h) for h in horizons)
         if not horizons or horizons[-1] != 1.0 or any(not 0 < h <= 1 for h in horizons):
             raise ParameterError(f"horizons={horizons}: fractions in (0, 1], the last one 1")
-    setup = _setup(scene, ts, data, parameters, initial, y0, sigma, rtol, atol, max_steps)
+    setup = _setup(scene, ts, data, parameters, initial, y0, sigma, rtol, atol, max_steps,
+                   bias)
     problem, u0, ts, obs = setup.problem, setup.u0, setup.ts, setup.obs
     if horizons is None:
         horizons = _auto_horizons(problem, u0, ts)
@@ -820,7 +866,7 @@ def fit(
     if reweight and len(outputs) > 1:
         # Weight each output by its own residual scale, and refit from the optimum (the
         # same compiled functions: `sigma` is an array of the problem).
-        rms = _rms_by_output(np.asarray(r), obs, ts_p.size, problem.sigma)
+        rms = _rms_by_output(np.asarray(r), obs, ts_p.size, problem.sigma, problem.kinds)
         problem = eqx.tree_at(lambda p: p.sigma, problem,
                               tuple(jnp.asarray(rms[k] * setup.scale, dtype)
                                     for k in outputs))
@@ -854,7 +900,8 @@ def fit(
         values=values, std=std, identifiable=identifiable, notes=tuple(lines),
         scene=scene_fit, y0=y0_fit, u=u, components=components, covariance=cov,
         loss=float(loss) * c2, residual_rms=float(np.sqrt(2 * loss * c2 / n_obs)),
-        residual_rms_by_output=_rms_by_output(np.asarray(r), obs, ts_p.size, problem.sigma),
+        residual_rms_by_output=_rms_by_output(np.asarray(r), obs, ts_p.size, problem.sigma,
+                                              problem.kinds),
         noise_variance=float(s2) * c2, converged=best["converged"],
         iterations=best["iterations"], history=best["history"] * c2, stages=best["stages"],
         restart_losses=np.array([run["loss"] for run in runs]) * c2,
