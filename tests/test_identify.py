@@ -452,6 +452,30 @@ def test_cli_torque_free(capsys, tmp_path):
     assert out["not_identifiable"] == ["inertia.scale"] and out["converged"]
 
 
+def test_cli_gyro_bias_and_star_tracker(capsys, tmp_path):
+    """`jaxdyn fit` on a gyro with bias and a star tracker (random quaternion signs), irregular
+    samples: the bias is fitted with --bias omega and the moments and bias are within their
+    intervals."""
+    rng = np.random.default_rng(5701)
+    ts = np.sort(np.concatenate([[0.0], rng.uniform(0.0, 12.0, 150)]))
+    moments, w, q, _, _ = _attitude_record(ts)
+    bias = np.array([3e-3, -2e-3, 1e-3])
+    gyro = w + bias + 1e-4 * rng.normal(size=w.shape)
+    star = _star_tracker(q, 1e-4, rng)
+    path = write_csv(tmp_path / "telemetry.csv", "t,wx,wy,wz,q0,q1,q2,q3", [ts, gyro, star])
+    status, out, err = run_cli(capsys, "fit", path, "--scene", "torque-free", "--bias", "omega",
+                               "--json")
+    assert status == 0, err
+    out = json.loads(out)
+    m, sd = np.array(out["principal_moments"]), np.array(out["std"])
+    assert np.all(np.abs(m - moments / moments[-1]) <= 4 * sd + 1e-12), (m, sd)
+    b, sb = np.array(out["bias.omega"]), np.array(out["bias.omega_std"])
+    assert np.all(np.abs(b - bias) <= 4 * sb), (b, sb)
+    assert out["converged"]
+    status, _, err = run_cli(capsys, "fit", path, "--bias", "theta")
+    assert status == 2 and "--bias theta" in err
+
+
 def test_cli_rod_with_known_g(capsys, tmp_path):
     rng = np.random.default_rng(5502)
     length, theta0, theta_dot0, ts, angles = rod_case(rng, g=3.7)
