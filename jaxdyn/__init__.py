@@ -28,6 +28,7 @@ _LAZY = {  # public name -> (module, name in it)
     "MagneticTorquers": ("._effects", "MagneticTorquers"),
     "Thrusters": ("._effects", "Thrusters"),
     "RateDamping": ("._effects", "RateDamping"),
+    "CommandedTorques": ("._effects", "CommandedTorques"),
     "RingDamper": ("._effects", "RingDamper"),
     "Rotor": ("._effects", "Rotor"),
     "Wheels": ("._effects", "Wheels"),
@@ -134,6 +135,7 @@ if TYPE_CHECKING:  # the same names, for type checkers and editors
     from ._effect import AbstractEffect as AbstractEffect
     from ._effects import (
         AttitudeTracking as AttitudeTracking,
+        CommandedTorques as CommandedTorques,
         ExternalTorque as ExternalTorque,
         GravityGradient as GravityGradient,
         LinearDamping as LinearDamping,

@@ -110,6 +110,11 @@ class AbstractEffect(eqx.Module):
     def energy(self, t: Scalar, y: State, own: State, body) -> Array | None:
         return None
 
+    def outputs(self, t: Scalar, y: State, own: State, body) -> dict[str, Array]:
+        """What the effect's own sensors read (a wheel's speed), as outputs of the scene
+        named `"<label>.<name>"`: observable in trajectories and fittable by `fit`."""
+        return {}
+
     def split_momentum(self, y: State, own: State) -> Array | None:
         """For splitting integrators: the internal momentum, if it stays constant while the body
         turns (a constant-speed rotor, free wheels). Effects that exchange momentum or apply

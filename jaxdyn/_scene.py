@@ -219,9 +219,13 @@ class Scene(eqx.Module):
         return tuple(names)
 
     def outputs(self, t: Scalar, y: State) -> dict[str, Array]:
-        """Every derived output at one instant: the body's outputs and the invariants."""
-        out = dict(self.body.outputs(t, y, self._own(y), self.attitude))
+        """Every derived output at one instant: the body's outputs, the invariants, and what
+        each effect's sensors read (`"<label>.<name>"`, such as a wheel's speed)."""
+        pairs = self._own(y)
+        out = dict(self.body.outputs(t, y, pairs, self.attitude))
         out.update(self.invariants(t, y))
+        for label, (e, own) in zip(self.labels, pairs):
+            out.update({f"{label}.{k}": v for k, v in e.outputs(t, y, own, self.body).items()})
         return out
 
     def output_names(self) -> tuple[str, ...]:

@@ -13,6 +13,7 @@ from ._thrusters import Thrusters as Thrusters
 from ._torque import ExternalTorque as ExternalTorque
 from ._wheels import (
     AttitudeTracking as AttitudeTracking,
+    CommandedTorques as CommandedTorques,
     RateDamping as RateDamping,
     Wheels as Wheels,
 )

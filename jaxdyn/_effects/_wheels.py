@@ -238,6 +238,10 @@ class Wheels(AbstractEffect):
     def momentum(self, t, y, own, body) -> Array:
         return own["momentum"] @ self.axes
 
+    def outputs(self, t, y, own, body) -> dict[str, Array]:
+        """The wheels' tachometers: `speed`, each wheel's spin relative to the body (rad/s)."""
+        return {"speed": self.speed(y, own)}
+
     def momentum_rate(self, t, y, own, body) -> Array | None:
         if self.motor is None and self.damping is None:
             return None
@@ -250,6 +254,49 @@ class Wheels(AbstractEffect):
 
     def energy(self, t, y, own, body) -> Array:
         return 0.5 * jnp.sum(own["momentum"] ** 2 / self.inertia)
+
+
+class CommandedTorques(eqx.Module):
+    """Motor torques for [`jaxdyn.Wheels`][] as commanded in telemetry: `torques[k]` held from
+    `times[k]` until the next command (zero-order hold; before the first command, none).
+    Known inputs when identifying a body from its wheels' telemetry: the torques, in
+    absolute units, fix the scale of the inertia.
+
+    **Arguments:**
+
+    - `times`: `(K,)` increasing command times (s).
+    - `torques`: `(K, N)` motor torques (N m), one column per wheel.
+    """
+
+    times: Float[Array, " K"]
+    torques: Float[Array, "K N"]
+
+    def __init__(self, times: Float[ArrayLike, " K"], torques: Float[ArrayLike, "K N"]):
+        times = as_float_array("commanded_torques.times", times)
+        torques = as_float_array("commanded_torques.torques", torques, None, times.dtype)
+        if times.ndim != 1 or times.size == 0:
+            raise ParameterError(f"commanded_torques.times has shape {times.shape}: "
+                                 "expected a non-empty 1-D array")
+        torques = torques[:, None] if torques.ndim == 1 else torques
+        if torques.ndim != 2 or torques.shape[0] != times.size:
+            raise ParameterError(f"commanded_torques.torques has shape {torques.shape}: "
+                                 f"expected ({times.size}, N), one row per command time")
+        self.times, self.torques = times, torques
+
+    def __check_init__(self):
+        from .._validation import raise_if_violated
+
+        raise_if_violated([
+            finite_check("commanded_torques.torques", self.torques),
+            ("commanded_torques.times", self.times,
+             ~jnp.all(jnp.isfinite(self.times)) | jnp.any(jnp.diff(self.times) <= 0),
+             "must be finite and strictly increasing"),
+        ])
+
+    def __call__(self, t, y, wheels) -> Array:
+        k = jnp.searchsorted(self.times, t, side="right") - 1
+        held = self.torques[jnp.clip(k, 0, self.times.size - 1)]
+        return jnp.where(k >= 0, held, 0.0).astype(y["omega"].dtype)
 
 
 class RateDamping(eqx.Module):
