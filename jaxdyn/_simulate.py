@@ -393,7 +393,9 @@ def simulate(
         meter=meter,
         dense=dense,
         checks=traced,
-        solver_saves=isinstance(adjoint, dfx.RecursiveCheckpointAdjoint | dfx.ForwardMode),
+        # (Not under a trace of the caller's: its loop over the times is not reverse-mode
+        # differentiable, and such a program carries the runtime checks anyway.)
+        solver_saves=not traced,
     )
     if not traced:
         raise_on_failure(traj)
@@ -514,11 +516,13 @@ def simulate_unchecked(scene: Scene, y0: State, t1, *, t0=0.0, ts=None, solver=N
     `traj.outcome` (no runtime check, no host callback in the caller's program)."""
     y0, t0, t1, ts, solver, stepsize_controller, dt0 = _prepare_run(
         scene, y0, t0, t1, ts, solver, None, None, stepsize_controller, dt0, max_steps)
+    adjoint = dfx.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
+    # In forward mode (fit's Jacobians) the solver saves at `ts` (no host callback for traced
+    # times); its loop over the times is not reverse-mode differentiable.
     return _simulate(scene, y0, t0, t1, ts, solver=solver, controller=stepsize_controller,
-                     dt0=dt0, max_steps=max_steps,
-                     adjoint=dfx.RecursiveCheckpointAdjoint() if adjoint is None else adjoint,
-                     events=events, meter=dfx.NoProgressMeter(), dense=False, checks=False,
-                     solver_saves=True)
+                     dt0=dt0, max_steps=max_steps, adjoint=adjoint, events=events,
+                     meter=dfx.NoProgressMeter(), dense=False, checks=False,
+                     solver_saves=isinstance(adjoint, dfx.ForwardMode))
 
 
 def raise_on_failure(traj: Trajectory) -> None:
@@ -540,7 +544,7 @@ def raise_on_failure(traj: Trajectory) -> None:
 def _simulate_impl(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps, adjoint,
                    events, meter, dense, checks=True, solver_saves=False) -> Trajectory:
     # checks=False (ensembles): failures are left in `Trajectory.result` instead of raised.
-    # solver_saves: the solver saves at `ts` (see `Sampled`), where no event can end the run.
+    # solver_saves: the solver saves at `ts` (see `Sampled`), not diffrax's `SaveAt(ts)`.
     if checks:
         y0 = scene.check(y0)
     if isinstance(controller, ScaledPIDController):
@@ -556,9 +560,8 @@ def _simulate_impl(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps,
                                dense=dense, checks=checks, time_scale=time_scale)
     event = _event(scene, t0, y0, time_scale) if events else None
     # Traced sample times are saved by the solver itself (`Sampled`): `SaveAt(ts)` of traced
-    # times carries diffrax's runtime check of them, a host callback. (Runs that an event may
-    # end early save through diffrax, which marks the times after the event.)
-    sampled = solver_saves and ts is not None and event is None
+    # times carries diffrax's runtime check of them, a host callback.
+    sampled = solver_saves and ts is not None
     if sampled:
         if isinstance(adjoint, dfx.ForwardMode) and getattr(solver, "scan_kind", "") is None:
             # What diffrax does for forward mode, done before wrapping (it cannot see inside).
@@ -586,9 +589,14 @@ def _simulate_impl(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps,
         throw=False,
     )
     if sampled:
+        # Times not reached, or after a terminating event, are inf, as diffrax leaves them.
         _, ys_saved, reached = sol.solver_state
         t_end, y_end = sol.ts, sol.ys
-        ts_saved = jnp.where(jnp.arange(ts.size) < reached, ts, jnp.inf)
+        kept = (jnp.arange(ts.size) < reached) & (ts <= t_end[0])
+        ts_saved = jnp.where(kept, ts, jnp.inf)
+        ys_saved = jax.tree.map(
+            lambda a: jnp.where(kept.reshape((-1,) + (1,) * (a.ndim - 1)), a, jnp.inf),
+            ys_saved)
     else:
         (ts_saved, t_end), (ys_saved, y_end) = sol.ts, sol.ys
     if ts is None:

@@ -22,6 +22,9 @@ from jaxtyping import Array, Float
 class Sampled(dfx.AbstractWrappedSolver):
     """`solver`, also saving the state at the increasing times `ts` (a run forwards in time).
 
+    For runs that are not reverse-mode differentiated (its loop over the times in a step has a
+    dynamic trip count): concrete runs, and forward-mode Jacobians.
+
     Its solver state is `(inner, ys, index)`: `ys` holds the state at each of `ts` (the initial
     state at times up to the start; `inf` where not yet reached, as diffrax fills `SaveAt(ts)`),
     `index` the number of times saved. Read it with `diffrax.SaveAt(solver_state=True)`.
