@@ -193,9 +193,18 @@ def _check_scene(scene) -> None:
         )
 
 
+_DTYPES: dict = {}  # the rates' dtype by scene structure, leaf types and default float
+
+
 def _scene_dtype(scene: Scene):
-    # The body rates take the body's dtype; effects cast their contributions to it.
-    return jax.eval_shape(lambda: scene.state(omega=jnp.zeros(3)))["omega"].dtype
+    # The body rates take the body's dtype; effects cast their contributions to it. Found once
+    # per structure (by an abstract evaluation, which traces).
+    leaves, treedef = jax.tree_util.tree_flatten(scene)
+    key = (treedef, tuple((np.shape(x), getattr(x, "dtype", type(x))) for x in leaves),
+           jnp.dtype(jnp.result_type(float)))
+    if key not in _DTYPES:
+        _DTYPES[key] = jax.eval_shape(lambda: scene.state(omega=jnp.zeros(3)))["omega"].dtype
+    return _DTYPES[key]
 
 
 def _positive_scalar(field: str, value, dtype):
@@ -501,7 +510,10 @@ def trace_separatrices(
             raise ParameterError(f"{name}={value!r}: must be positive and finite")
     dtype = equilibria.omega.dtype
     momentum = jnp.asarray(equilibria.momentum, dtype)
+    # The equilibria on the host once (each branch reads them there).
     w_all = np.asarray(equilibria.omega)
+    unstable = np.asarray(equilibria.unstable_direction)
+    energies = np.asarray(equilibria.energy)
     saddles = np.flatnonzero(equilibria.is_saddle)
     scale = float(_rate_scale(scene, momentum))
     if rtol is None:
@@ -512,24 +524,23 @@ def trace_separatrices(
     for s in saddles:
         lam = float(rates[s])
         t1 = horizon / lam
-        ts = jnp.linspace(0.0, t1, samples, dtype=dtype)
+        ts = np.asarray(jnp.linspace(0.0, t1, samples, dtype=dtype))
         for sign in (1, -1):
-            w0 = _start_on_sphere(scene, jnp.asarray(w_all[s], dtype),
-                                  sign * equilibria.unstable_direction[s],
-                                  jnp.asarray(step * scale, dtype), momentum)
+            w0 = _start_on_sphere(scene, w_all[s], sign * unstable[s],
+                                  np.asarray(step * scale, dtype), momentum)
             traj = simulate(scene, scene.state(omega=w0), t1, ts=ts, rtol=rtol,
                             atol=None if atol is None else atol * scale, dense=True)
             w = np.asarray(traj.ys["omega"])
             dist = np.min(np.linalg.norm(w[:, None, :] - w_all[saddles][None], axis=-1), axis=1)
-            end, returned = _cut(np.asarray(ts), dist / scale, leave=1e-2, arrive=1e-2)
+            end, returned = _cut(ts, dist / scale, leave=1e-2, arrive=1e-2)
             end_saddle = int(saddles[np.argmin(np.linalg.norm(w_all[saddles] - w[end], axis=-1))])
             # Resample evenly in arc length, evaluating the dense output (so every point is an
             # integrated state, not an interpolation between samples).
             seg = np.linalg.norm(np.diff(w[: end + 1], axis=0), axis=1)
             arc = np.concatenate([[0.0], np.cumsum(seg)])
-            t_even = np.interp(np.linspace(0.0, arc[-1], num), arc, np.asarray(ts)[: end + 1])
+            t_even = np.interp(np.linspace(0.0, arc[-1], num), arc, ts[: end + 1])
             omega, h = _evaluate(traj, jnp.asarray(t_even, dtype))
-            branches.append((omega, h, equilibria.energy[s], s, sign, t_even[-1], returned,
+            branches.append((omega, h, energies[s], s, sign, t_even[-1], returned,
                              end_saddle if returned else -1))
 
     if not branches:

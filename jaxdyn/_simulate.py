@@ -15,6 +15,7 @@ from ._body import AbstractBody
 from ._custom_types import State
 from ._outcome import MESSAGES, NAMES, Outcome, SimulationError, from_diffrax, is_success
 from ._scene import Scene
+from ._solvers._sampled import Sampled
 from ._tolerance import ScaledPIDController
 from ._validation import (
     ParameterError,
@@ -380,17 +381,21 @@ def simulate(
     # trace of the caller's (jit, grad, vmap) the host cannot see the values: the checks ride
     # in the program (equinox's runtime errors).
     traced = not is_concrete(scene, y0, t0, t1, ts)
+    adjoint = dfx.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
     traj = _simulate(
         scene, y0, t0, t1, ts,
         solver=solver,
         controller=stepsize_controller,
         dt0=dt0,
         max_steps=max_steps,
-        adjoint=dfx.RecursiveCheckpointAdjoint() if adjoint is None else adjoint,
+        adjoint=adjoint,
         events=events,
         meter=meter,
         dense=dense,
         checks=traced,
+        # (Not under a trace of the caller's: its loop over the times is not reverse-mode
+        # differentiable, and such a program carries the runtime checks anyway.)
+        solver_saves=not traced,
     )
     if not traced:
         raise_on_failure(traj)
@@ -449,7 +454,7 @@ def _fast_simulate(scene, y0, t1, t0, ts, rtol, atol, max_steps, events, dense):
                 scene, y0, t0, t1, ts, solver=dfx.Tsit5(),
                 controller=ScaledPIDController(rtol=rtol, atol=atol), dt0=None,
                 max_steps=max_steps, adjoint=dfx.RecursiveCheckpointAdjoint(), events=events,
-                meter=dfx.NoProgressMeter(), dense=dense, checks=False)
+                meter=dfx.NoProgressMeter(), dense=dense, checks=False, solver_saves=True)
             return tuple(getattr(traj, name) for name in _FIELDS)
 
         return simulate_program
@@ -511,10 +516,13 @@ def simulate_unchecked(scene: Scene, y0: State, t1, *, t0=0.0, ts=None, solver=N
     `traj.outcome` (no runtime check, no host callback in the caller's program)."""
     y0, t0, t1, ts, solver, stepsize_controller, dt0 = _prepare_run(
         scene, y0, t0, t1, ts, solver, None, None, stepsize_controller, dt0, max_steps)
+    adjoint = dfx.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
+    # In forward mode (fit's Jacobians) the solver saves at `ts` (no host callback for traced
+    # times); its loop over the times is not reverse-mode differentiable.
     return _simulate(scene, y0, t0, t1, ts, solver=solver, controller=stepsize_controller,
-                     dt0=dt0, max_steps=max_steps,
-                     adjoint=dfx.RecursiveCheckpointAdjoint() if adjoint is None else adjoint,
-                     events=events, meter=dfx.NoProgressMeter(), dense=False, checks=False)
+                     dt0=dt0, max_steps=max_steps, adjoint=adjoint, events=events,
+                     meter=dfx.NoProgressMeter(), dense=False, checks=False,
+                     solver_saves=isinstance(adjoint, dfx.ForwardMode))
 
 
 def raise_on_failure(traj: Trajectory) -> None:
@@ -533,8 +541,9 @@ def raise_on_failure(traj: Trajectory) -> None:
 
 
 def _simulate_impl(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps, adjoint,
-                   events, meter, dense, checks=True) -> Trajectory:
+                   events, meter, dense, checks=True, solver_saves=False) -> Trajectory:
     # checks=False (ensembles): failures are left in `Trajectory.result` instead of raised.
+    # solver_saves: the solver saves at `ts` (see `Sampled`), not diffrax's `SaveAt(ts)`.
     if checks:
         y0 = scene.check(y0)
     if isinstance(controller, ScaledPIDController):
@@ -548,9 +557,20 @@ def _simulate_impl(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps,
         return simulate_hybrid(scene, y0, t0, t1, ts, solver=solver, controller=controller,
                                dt0=dt0, max_steps=max_steps, adjoint=adjoint, meter=meter,
                                dense=dense, checks=checks, time_scale=time_scale)
-    first = dfx.SubSaveAt(t0=True) if ts is None else dfx.SubSaveAt(ts=ts)
-    saveat = dfx.SaveAt(subs=[first, dfx.SubSaveAt(t1=True)], dense=dense)
     event = _event(scene, t0, y0, time_scale) if events else None
+    # Traced sample times are saved by the solver itself (`Sampled`): `SaveAt(ts)` of traced
+    # times carries diffrax's runtime check of them, a host callback.
+    sampled = solver_saves and ts is not None
+    if sampled:
+        if isinstance(adjoint, dfx.ForwardMode) and getattr(solver, "scan_kind", "") is None:
+            # What diffrax does for forward mode, done before wrapping (it cannot see inside).
+            solver = eqx.tree_at(lambda s: s.scan_kind, solver, "lax",
+                                 is_leaf=lambda x: x is None)
+        solver = Sampled(solver, ts)
+        saveat = dfx.SaveAt(t1=True, solver_state=True, dense=dense)
+    else:
+        first = dfx.SubSaveAt(t0=True) if ts is None else dfx.SubSaveAt(ts=ts)
+        saveat = dfx.SaveAt(subs=[first, dfx.SubSaveAt(t1=True)], dense=dense)
     sol = dfx.diffeqsolve(
         dfx.ODETerm(scene.vector_field),
         solver,
@@ -567,7 +587,17 @@ def _simulate_impl(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps,
         progress_meter=meter,
         throw=False,
     )
-    (ts_saved, t_end), (ys_saved, y_end) = sol.ts, sol.ys
+    if sampled:
+        # Times not reached, or after a terminating event, are inf, as diffrax leaves them.
+        _, ys_saved, reached = sol.solver_state
+        t_end, y_end = sol.ts, sol.ys
+        kept = (jnp.arange(ts.size) < reached) & (ts <= t_end[0])
+        ts_saved = jnp.where(kept, ts, jnp.inf)
+        ys_saved = jax.tree.map(
+            lambda a: jnp.where(kept.reshape((-1,) + (1,) * (a.ndim - 1)), a, jnp.inf),
+            ys_saved)
+    else:
+        (ts_saved, t_end), (ys_saved, y_end) = sol.ts, sol.ys
     if ts is None:
         ts_saved = jnp.concatenate([ts_saved, t_end])
         ys_saved = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), ys_saved, y_end)

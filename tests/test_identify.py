@@ -7,6 +7,10 @@ line, so that all of them share a handful of compilations.
 """
 
 import json
+import os
+import re
+import subprocess
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -541,6 +545,34 @@ def test_cli_rod_with_known_g(capsys, tmp_path):
     assert abs(out["length"] - length) <= 4 * out["length_std"], (out["length"], length)
     assert out["not_identifiable"] == ["mass"] and out["mass"] is None
     assert out["known"]["g"] == 3.7 and out["residual_rms"] < 0.003
+
+
+def test_cli_fit_programs_are_cached_on_the_second_run(tmp_path):
+    """JAX's own log: every program of `jaxdyn fit` is written to the persistent cache (none is
+    refused for holding a host callback: the sample times are traced), and the second
+    invocation compiles nothing."""
+    rng = np.random.default_rng(5503)
+    tensor, w0 = random_body(rng)
+    ts = np.linspace(0.0, 12.0, SAMPLES)
+    data = euler_rates(tensor, w0, ts) + 0.005 * rng.normal(size=(SAMPLES, 3))
+    path = write_csv(tmp_path / "rates.csv", "t,wx,wy,wz", [ts, data])
+    env = {**os.environ, "JAX_LOGGING_LEVEL": "DEBUG",
+           "JAXDYN_CACHE_DIR": str(tmp_path / "cache")}
+    logs = []
+    for _ in range(2):
+        proc = subprocess.run([sys.executable, "-m", "jaxdyn._cli", "fit", path, "--restarts",
+                               "1", "--json"], capture_output=True, text=True, timeout=600,
+                              env=env)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        logs.append(proc.stderr)
+    first, second = logs
+    assert not re.search(r"Not writing persistent cache entry", first)
+    written = re.findall(r"Writing (\S+) to persistent compilation cache", first)
+    assert any("levenberg_marquardt" in w for w in written), written
+    assert any("jacobian" in w for w in written), written
+    assert not re.search(r"Writing .* to persistent compilation cache", second)
+    hits = re.findall(r"Persistent compilation cache hit for '([^']+)'", second)
+    assert "jit__levenberg_marquardt" in hits and "jit__jacobian" in hits, hits
 
 
 BAD = [
