@@ -23,7 +23,14 @@ interval (both land on the same least-squares optimum, up to the integration tol
 jaxdyn's default multi-start fit (random restarts until two agree) and the optax route (Adam,
 then L-BFGS) on the same data, for comparison. Prints one JSON object.
 
-Run: `python benchmarks/identify.py [--quick]`.
+Scaling (`--sizes`): fit time against record length at a fixed sample rate (10 Hz, so a
+longer record spans more turns), beside the time of one forward simulation of the same record
+(median of 3 after compilation) and, up to 1000 samples, SciPy's fit of the same data; the
+error of the moments reached at each size. jaxdyn's fit there is one start with the default
+continuation (spans chosen by the record's length); `first_s` includes compilation,
+`warm_s` (a second record of the same length, other noise) does not.
+
+Run: `python benchmarks/identify.py [--quick] [--sizes 100,1000,10000,100000]`.
 """
 
 import argparse
@@ -109,6 +116,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="fewer repeats")
     parser.add_argument("--seed", type=int, default=2024)
+    parser.add_argument("--sizes", default="100,1000,10000",
+                        help="record lengths for the scaling table (comma-separated; '' "
+                             "skips it)")
     args = parser.parse_args()
     repeats = 3 if args.quick else 7
     samples, t1, noise = 200, 20.0, 0.01
@@ -194,7 +204,52 @@ def main() -> None:
     out["equal_or_better_accuracy"] = bool(
         out["jaxdyn"]["moments_error"] <= out["scipy"]["moments_error"] + 0.01 * sigma)
     out["target_met"] = bool(out["speedup"] >= 10 and out["equal_or_better_accuracy"])
+    sizes = [int(float(x)) for x in args.sizes.split(",") if x.strip()]
+    out["scaling"] = [scaling_row(args.seed, n, scene) for n in sizes]
     print(json.dumps(out, indent=2))
+
+
+def scaling_row(seed: int, samples: int, scene) -> dict:
+    """One row of the scaling table: a record of `samples` at 10 Hz."""
+    rate, noise = 10.0, 0.01
+    t1 = (samples - 1) / rate
+    tensor, ts, data = make_data(seed, samples, t1, noise)
+    truth = np.linalg.eigvalsh(tensor)
+    truth = truth / truth[-1]
+    kwargs = dict(parameters={"inertia": jd.ValidInertia()}, initial=["omega"], restarts=1)
+
+    def fit(d):
+        t0 = time.perf_counter()
+        res = jd.fit(scene, ts, {"omega": d}, **kwargs)
+        return res, time.perf_counter() - t0
+
+    res, first_s = fit(data)
+    row = {"samples": samples, "t1": t1, "first_s": first_s, "converged": res.converged,
+           "moments_error": float(np.max(np.abs(
+               np.asarray(res.values["inertia.principal_moments"]) - truth))),
+           "std": float(np.max(np.asarray(res.std["inertia.principal_moments"]))),
+           "stages": len(res.stages), "iterations": res.iterations}
+    if samples <= 10_000:
+        other = data + noise * np.random.default_rng(seed + 1).normal(size=data.shape)
+        row["warm_s"] = fit(other)[1]
+    body = jd.Scene(jd.RigidBody(tensor))
+    y0, grid = body.state(omega=data[0]), jnp.asarray(ts)
+    jax.block_until_ready(jd.simulate(body, y0, t1, ts=grid).ys)
+    sims = []
+    for _ in range(3):
+        t0 = time.perf_counter()
+        jax.block_until_ready(jd.simulate(body, y0, t1, ts=grid).ys)
+        sims.append(time.perf_counter() - t0)
+    row["simulate_s"] = statistics.median(sims)
+    row["fit_over_simulate"] = row.get("warm_s", first_s) / row["simulate_s"]
+    if samples <= 1000:
+        u0 = jd.ValidInertia().to_unconstrained(scene.body.inertia)
+        v0 = np.concatenate([np.asarray(u0)[1:], data[0]])
+        t0 = time.perf_counter()
+        sp_m = scipy_fit(v0, ts, data)[0]
+        row["scipy_s"] = time.perf_counter() - t0
+        row["scipy_moments_error"] = float(np.max(np.abs(sp_m - truth)))
+    return row
 
 
 if __name__ == "__main__":
