@@ -109,6 +109,7 @@ def test_rate_damping_detumbles_within_limits():
     scene = jd.Scene(jd.RigidBody([10.0, 12.0, 15.0]), (wheels,), attitude=True)
     traj = jd.simulate(scene, scene.state(omega=[0.05, -0.03, 0.04]), 800.0,
                        ts=jnp.linspace(0, 800, 401), **TIGHT)
+    assert np.linalg.norm(traj.omega[300]) < 1e-8  # at t = 600 s
     assert np.linalg.norm(traj.y_final["omega"]) < 1e-9
     u = jax.vmap(lambda t, y: wheels.motor_torque(t, y, _own_state(y)))(traj.ts, traj.ys)
     assert np.max(np.abs(u)) <= 0.02 + 1e-15
@@ -144,6 +145,10 @@ def test_attitude_tracking_reaches_the_target():
     traj = jd.simulate(scene, scene.state(omega=[0.01, 0.0, -0.01]), 300.0, **TIGHT)
     q = traj.y_final["quaternion"]
     assert 1 - abs(float(jnp.dot(q, target))) < 1e-9
+    # The error angle itself, 2 atan2(|dq_vec|, |dq_0|) with dq = target* (x) q (the arccos of
+    # |dq_0| would read round-off in |q| as an angle).
+    dq = jd.quat_multiply(jd.quat_conjugate(target), q)
+    assert 2 * np.arctan2(np.linalg.norm(dq[1:]), abs(float(dq[0]))) < 1e-9
     assert np.linalg.norm(traj.y_final["omega"]) < 1e-8
 
 

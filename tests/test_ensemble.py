@@ -14,6 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import scipy.special
 from helpers import INTEGRATION, tol
 
 import jaxdyn as jd
@@ -109,6 +110,154 @@ def test_rod_fall_times_match_quadrature():
         jax.random.fold_in(k, name_seed("theta_dot")), (), jnp.float64))(lo)
     fall = np.array([float(rod.fall_time(a, b)) for a, b in zip(th0, rate0)])
     assert np.allclose(res.values["t_final"], fall, rtol=1e-7)
+
+
+# -- the flip of a spin about the intermediate axis, nutation cones, rod fall times ------------
+
+FLIP_BODY = jd.Scene(jd.RigidBody(inertia=[1.0, 2.0, 2.7]))  # 10 % inside the triangle inequality
+FLIP_TS = jnp.linspace(0.0, 80.0, 801)
+FLIP_SIGMA = 1e-3  # transverse rate spread (rad/s), about a spin of 1 rad/s
+
+
+def _flip_times(traj):
+    # The first two sign changes of omega_2, linearly interpolated between saved samples.
+    t, w2 = traj.ts, traj.ys["omega"][:, 1]
+    change = traj.valid[:-1] & traj.valid[1:] & (jnp.sign(w2[:-1]) != jnp.sign(w2[1:]))
+    t_cross = jnp.where(change, t[:-1] + w2[:-1] / (w2[:-1] - w2[1:]) * (t[1:] - t[:-1]),
+                        jnp.inf)
+    first = jnp.min(t_cross)
+    second = jnp.min(jnp.where(t_cross > first, t_cross, jnp.inf))
+    return {"flip_1": first, "flip_2": second, "omega0": traj.ys["omega"][0],
+            "inertia": traj.scene.parameters()["inertia"]}
+
+
+def _flip_ensemble(n, key, inertia_spread):
+    return jd.ensemble(
+        FLIP_BODY, FLIP_BODY.state(omega=[0.0, 1.0, 0.0]), 80.0, n=n, key=key, ts=FLIP_TS,
+        vary={"inertia": jd.LogNormal([1.0, 2.0, 2.7], inertia_spread),
+              "omega[0]": jd.Normal(0.0, FLIP_SIGMA), "omega[2]": jd.Normal(0.0, FLIP_SIGMA)},
+        observe=_flip_times)
+
+
+def _flip_constants(inertia, w2):
+    """About a spin w2 about the intermediate axis: the growth rate lam of the linearisation,
+    the ratio kappa = -omega_3 / omega_1 along its growing mode, and the amplitude A of omega_1
+    on the separatrix."""
+    i1, i2, i3 = np.asarray(inertia).T
+    lam = np.abs(w2) * np.sqrt((i2 - i1) * (i3 - i2) / (i1 * i3))
+    kappa = np.sqrt((i2 - i1) * i1 / ((i3 - i2) * i3))
+    amp = np.abs(w2) * np.sqrt(i2 * (i3 - i2) / (i1 * (i3 - i1)))
+    return lam, kappa, amp
+
+
+def _matched_flip_time(inertia, omega0):
+    """Time of the first flip: the growing mode a e^(lam t) of the linearisation, with
+    a = (omega_1 - omega_3 / kappa) / 2, matched to the separatrix's tail 2 A e^(lam (t - t_f))."""
+    lam, kappa, amp = _flip_constants(inertia, omega0[:, 1])
+    a = (omega0[:, 0] - omega0[:, 2] / kappa) / 2
+    return np.log(2 * amp / np.abs(a)) / lam
+
+
+@pytest.mark.parametrize("inertia_spread", [0.0, 0.01])
+def test_flip_times_match_the_period_and_the_matched_asymptotics(inertia_spread):
+    # Each run: the time between the first two flips is half the closed-form period 4 K(m) / lam'
+    # of its own inertia and rates, and the first flip comes at t_f = ln(2 A / |a|) / lam.
+    res = _flip_ensemble(400, 1, inertia_spread)
+    assert res.failed == 0 and np.all(np.isfinite(res.values["flip_2"]))
+    v = res.values
+    half = np.asarray(jax.vmap(jd.torque_free_period)(v["inertia"], v["omega0"])) / 2
+    assert np.max(np.abs(v["flip_2"] - v["flip_1"] - half)) < 1e-3
+    assert np.max(np.abs(v["flip_1"] - _matched_flip_time(v["inertia"], v["omega0"]))) < 1e-3
+
+
+def test_flip_times_follow_their_law():
+    # With the nominal inertia, t_f depends only on |a|, a Gaussian of standard deviation
+    # sigma_a = sigma sqrt(1 + kappa^-2) / 2, so P(t_f > tau) = erf(u) with
+    # u = 2 A e^(-lam tau) / (sqrt(2) sigma_a): a Kolmogorov-Smirnov test at the 95 % level.
+    res = _flip_ensemble(1000, 2, 0.0)
+    lam, kappa, amp = _flip_constants([1.0, 2.0, 2.7], 1.0)
+    sigma_a = 0.5 * FLIP_SIGMA * np.sqrt(1 + kappa**-2)
+    t = np.sort(res.values["flip_1"])
+    cdf = scipy.special.erfc(2 * amp * np.exp(-lam * t) / (np.sqrt(2) * sigma_a))
+    steps = np.arange(t.size + 1) / t.size  # the empirical distribution below and above each t
+    ks = np.max(np.maximum(steps[1:] - cdf, cdf - steps[:-1]))
+    assert ks < 1.36 / np.sqrt(t.size), ks
+
+
+def test_plate_bodies_outside_the_triangle_inequality_are_marked_invalid():
+    # I = (1, 2, 3) is a flat plate, I_3 = I_1 + I_2: with a 1 % spread per moment about half the
+    # draws are impossible bodies. Exactly those runs are marked invalid_input; the rest run.
+    scene = jd.Scene(jd.RigidBody(inertia=[1.0, 2.0, 3.0]))
+    res = jd.ensemble(scene, scene.state(omega=[0.0, 1.0, 0.0]), 1.0, n=400, key=0,
+                      vary={"inertia": jd.LogNormal([1.0, 2.0, 3.0], 0.01)},
+                      observe=lambda traj: {"inertia": traj.scene.parameters()["inertia"]})
+    moments = np.sort(res.values["inertia"], axis=1)
+    impossible = moments[:, 2] > moments[:, 0] + moments[:, 1]
+    assert np.array_equal(res.status == 5, impossible) and np.array_equal(res.ok, ~impossible)
+    assert abs(res.failed / res.n - 0.5) < 3 * np.sqrt(0.25 / res.n)
+
+
+def _cone_closed_form(inertia, omega0, k):
+    """Largest angle between body axis k and H on the polhode, from the energy and momentum
+    integrals: furthest from axis 3 where h_1 = 0, from axis 1 where h_3 = 0."""
+    i1, i2, i3 = inertia.T
+    hh = np.sum((inertia * omega0) ** 2, axis=-1)
+    two_t = np.sum(inertia * omega0**2, axis=-1)
+    if k == 2:
+        s2 = (two_t - hh / i3) / (hh * (1 / i2 - 1 / i3))
+    elif k == 0:
+        s2 = (hh / i1 - two_t) / (hh * (1 / i1 - 1 / i2))
+    else:
+        s2 = np.ones_like(hh)  # through the separatrix: 90 degrees from H
+    return np.arcsin(np.sqrt(np.clip(s2, 0.0, 1.0)))
+
+
+def _cone_angles(traj):
+    h = traj.angular_momentum
+    h2 = jnp.sum(h**2, axis=-1, keepdims=True)
+    angle = jnp.arctan2(jnp.sqrt(jnp.maximum(h2 - h**2, 0.0)), jnp.abs(h))
+    return {"max_angle": jnp.max(jnp.where(traj.valid[:, None], angle, 0.0), axis=0),
+            "omega0": traj.ys["omega"][0], "inertia": traj.scene.parameters()["inertia"]}
+
+
+@pytest.mark.parametrize("k, rel", [(0, 2e-3), (1, 2e-2), (2, 2e-3)])
+def test_nutation_cones_match_the_polhode(k, rel):
+    # Spins about each axis with 2 % transverse rate errors and a 1 % inertia spread: the largest
+    # sampled angle between the spin axis and H lies just below the closed form (samples 0.05 s
+    # apart against nutation periods of 8 to 11 s; about the intermediate axis the angle peaks in
+    # a cusp, which the samples can miss by a degree).
+    unit = np.eye(3)[k]
+    res = jd.ensemble(FLIP_BODY, FLIP_BODY.state(omega=unit), 40.0, n=200, key=10 + k,
+                      ts=jnp.linspace(0.0, 40.0, 801),
+                      vary={"inertia": jd.LogNormal([1.0, 2.0, 2.7], 0.01),
+                            "omega": jd.Normal(unit, 0.02 * (1 - unit))},
+                      observe=_cone_angles)
+    assert res.failed == 0
+    v = res.values
+    closed = _cone_closed_form(v["inertia"], v["omega0"], k)
+    below = (closed - v["max_angle"][:, k]) / closed
+    assert np.all(below > -1e-9) and np.all(below < rel), (below.min(), below.max())
+
+
+def test_rod_fall_times_from_nearly_upright():
+    # theta0 log-normal about 1e-3 rad, a small random initial rate: some rods fall backward.
+    # Every run ends flat, at the quadrature's fall time for its own start, and the median fall
+    # time is that of the median angle (the initial rate hardly matters at the median).
+    rod = jd.FallingRod(length=1.0, mass=1.0, g=9.81)
+    scene = jd.Scene(rod)
+
+    def fall(traj):
+        return {**jd.final_state(traj), "theta0": traj.ys["theta"][0],
+                "theta_dot0": traj.ys["theta_dot"][0]}
+
+    res = jd.ensemble(scene, scene.state(theta=1e-3), 5.0, n=3000, key=20, observe=fall,
+                      vary={"theta": jd.LogNormal(1e-3, 1.0), "theta_dot": jd.Normal(0.0, 1e-3)})
+    v = res.values
+    assert np.all(v["event.flat"]) and np.any(v["theta"] < 0)
+    t_quad = np.asarray(jax.jit(jax.vmap(rod.fall_time))(v["theta0"], v["theta_dot0"]))
+    assert np.max(np.abs(v["t_final"] / t_quad - 1)) < 1e-6
+    median = res.statistics["t_final"]["quantiles"]["50%"]
+    assert abs(median / float(rod.fall_time(1e-3)) - 1) < 0.01
 
 
 def test_saved_times_and_a_custom_observation():

@@ -172,11 +172,26 @@ def test_torque_free_body_recovered(seed):
     assert moments[-1] == pytest.approx(1.0) and std[-1] < 1e-12
     fitted_axes = np.asarray(res.values["inertia.principal_axes"])
     assert np.allclose(fitted_axes, axes, atol=0.02), (fitted_axes, axes)
+    # Each axis within 4 sigma of the truth, its sigma (radians) from those of its components.
+    angles = np.arccos(np.minimum(1.0, np.sum(fitted_axes * axes, axis=0)))
+    axes_sigma = np.linalg.norm(np.asarray(res.std["inertia.principal_axes"]), axis=0)
+    assert np.all(angles <= 4 * axes_sigma), (angles, axes_sigma)
+    tensor_fit = np.asarray(jd.inertia_tensor(jnp.asarray(moments), jnp.asarray(fitted_axes)))
+    assert np.allclose(tensor_fit, tensor / np.max(np.linalg.eigvalsh(tensor)), atol=0.01)
     assert np.allclose(np.asarray(res.values["omega"]), w0, atol=5 * noise)
     assert not res.identifiable["inertia.scale"]
     assert all(v for k, v in res.identifiable.items() if k != "inertia.scale")
     assert any("inertia.scale" in n for n in res.notes)
-    assert res.residual_rms == pytest.approx(noise, rel=0.25)
+    assert res.residual_rms == pytest.approx(noise, rel=0.2)
+    # The loss never rises within a stage of the fit, and ends at the noise floor
+    # (1/2) N sigma^2 for N values with noise sigma, within 3 standard errors of the chi-square
+    # (relative standard error sqrt(2 / N)).
+    ends = (*res.stages[1:], res.history.size)
+    for start, end in zip(res.stages, ends):
+        stage = res.history[start:end]
+        assert np.all(np.diff(stage) <= 1e-12 * stage[0]), stage
+    floor = 0.5 * data.size * noise**2
+    assert abs(res.history[-1] / floor - 1) <= 3 * np.sqrt(2 / data.size), res.history[-1] / floor
 
 
 @pytest.mark.parametrize("seconds", [1.0, 1e-3])
@@ -264,7 +279,9 @@ def test_intervals_cover_the_truth():
 
     A small problem (64 samples over 5 s), one body (given in its principal frame, so that the
     scene has the structure used everywhere here), 80 noise seeds; each fit starts at the truth
-    (this tests the intervals, not the search). The fits run one after another through
+    and fits the whole record at once (this tests the intervals, not the search: with the
+    default growing horizons, one start of seed 13 ends at a degenerate body with twice the
+    optimal loss, which the default restarts correct). The fits run one after another through
     one compiled fit (the fitter is a Python-level driver of compiled steps; batching 80 fits
     with `jax.vmap` would cost a second, larger compilation for no gain at this size).
     Tolerance: the two moments of one seed are correlated, so count 80 (not 160) independent
@@ -283,7 +300,7 @@ def test_intervals_cover_the_truth():
     noise = 0.01
     for seed in range(seeds):
         data = clean + noise * np.random.default_rng(10_000 + seed).normal(size=clean.shape)
-        res = jd.fit(scene, ts, {"omega": data}, **FIT_BODY, restarts=1,
+        res = jd.fit(scene, ts, {"omega": data}, **FIT_BODY, restarts=1, horizons=(1.0,),
                      y0={"omega": jnp.asarray(w0)})
         m = np.asarray(res.values["inertia.principal_moments"])[:2]
         s = np.asarray(res.std["inertia.principal_moments"])[:2]
@@ -292,6 +309,8 @@ def test_intervals_cover_the_truth():
     coverage = float(np.mean(hits))
     se = np.sqrt(0.683 * 0.317 / seeds)
     assert abs(coverage - 0.683) <= 3 * se, (coverage, np.std(z))
+    # No gross outliers: P(|z| > 5) ~ 6e-7 for each of 160 Gaussian errors.
+    assert np.max(np.abs(z)) <= 5, np.max(np.abs(z))
 
 
 # -- sensors ------------------------------------------------------------------------------------

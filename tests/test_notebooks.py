@@ -1,5 +1,7 @@
-"""Execute every numbered example notebook top to bottom; any cell error (including a failed
-physics `assert` inside a notebook) fails the test. Nothing is written back to the repository."""
+"""Execute every numbered example notebook top to bottom; any cell error fails the test. The
+notebooks explain and print how far their results lie from closed forms; the physics claims they
+show are asserted by the thematic tests (test_rod.py, test_separatrix.py, ...), not inside the
+notebooks. Nothing is written back to the repository."""
 
 from pathlib import Path
 

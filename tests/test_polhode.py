@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 from helpers import ROUNDOFF, tol
 from scipy.integrate import solve_ivp
+from scipy.optimize import brentq
 
 import jaxdyn as jd
 
@@ -63,4 +64,34 @@ def test_period_diverges_logarithmically_at_the_separatrix():
     steps = np.diff(periods)
     # 4 K(m) / lam with K ~ log(4 / sqrt(1 - m)) / ... : equal steps per decade of distance.
     assert np.allclose(steps[0], steps[1], rtol=1e-3) and steps[0] > 0
+    # Two saddles per period, each passed in sigma^-1 ln(1/eps) on the way in and as long on the
+    # way out: P ~ (4 / sigma) ln(1/eps), sigma = W sqrt((I2 - I1)(I3 - I2) / (I1 I3)), W = 2.
+    sigma = 2.0 * np.sqrt((2 - 1) * (3 - 2) / (1 * 3))
+    assert np.isclose(steps[1], 4 / sigma * np.log(100), rtol=1e-8)
     assert np.isinf(jd.torque_free_period(inertia, jnp.array([0.0, 2.0, 0.0])))
+
+
+@pytest.mark.parametrize("w1, w3", [(1e-1, 1e-1), (1e-3, 1e-3), (1e-5, 1e-5), (3e-3, 1e-3)])
+def test_simulated_period_near_the_separatrix(w1, w3):
+    # Near the separatrix (circling the major axis, or with w1 = 3 w3 the minor one) the period
+    # of a simulation, from the zero crossings of omega_2 on its dense output, against the
+    # closed form 4 K(m) / lambda. The period depends on H^2 - 2 T I_2 ~ eps^2, a small
+    # difference of two invariants that the integrator keeps only to its tolerance: at
+    # eps = 1e-5 the two agree to about 1e-6 (relative), at eps = 1e-3 to about 1e-10.
+    inertia = jnp.array([1.0, 2.0, 3.0])
+    omega0 = jnp.array([w1, 2.0, w3])
+    period = float(jd.torque_free_period(inertia, omega0))
+    scene = jd.Scene(jd.RigidBody(inertia))
+    t1 = 1.3 * period  # three crossings
+    traj = jd.simulate(scene, scene.state(omega=omega0), t1, rtol=1e-12, atol=1e-14,
+                       dense=True, max_steps=100_000)
+
+    def w2(t):
+        return float(traj.evaluate(jnp.array([t]))["omega"][0, 1])
+
+    grid = np.linspace(0.0, t1, 2001)
+    values = np.asarray(traj.evaluate(jnp.asarray(grid))["omega"][:, 1])
+    i = np.flatnonzero(np.sign(values[1:]) != np.sign(values[:-1]))
+    assert len(i) >= 3
+    first, third = (brentq(w2, grid[k], grid[k + 1], xtol=1e-14, rtol=1e-15) for k in i[[0, 2]])
+    assert np.isclose(third - first, period, rtol=1e-5)

@@ -59,6 +59,23 @@ def slip_onset(theta0, mu_s):
     return theta, pivot_forces(theta, theta0)[0]
 
 
+@pytest.mark.parametrize("theta0", [0.05, 0.6])
+def test_pivot_forces_match_the_closed_form(theta0):
+    # `RoughFloorRod.pivot_forces` against F = m a_cx and N = m g + m a_cy with the CM on a circle
+    # about the fixed tip (written out above), and against the forms
+    # F = (3/4) m g sin(theta) (3 cos(theta) - 2 cos(theta0)),
+    # N = (1/4) m g (1 + 9 cos(theta)^2 - 6 cos(theta0) cos(theta)).
+    rod = jd.RoughFloorRod(length=L, mass=M, g=G, mu_s=0.5, mu_k=0.4)
+    theta = np.linspace(theta0, np.arccos(1 / 3) - 0.02, 2000)
+    forces = rod.pivot_forces(theta, theta0)
+    f, n = np.asarray(forces["friction_force"]), np.asarray(forces["normal_force"])
+    f_ref, n_ref = pivot_forces(theta, theta0)
+    assert np.allclose(f, f_ref, rtol=0, atol=1e-12) and np.allclose(n, n_ref, rtol=0, atol=1e-12)
+    c, c0 = np.cos(theta), np.cos(theta0)
+    assert np.allclose(f, 0.75 * M * G * np.sin(theta) * (3 * c - 2 * c0), rtol=0, atol=1e-12)
+    assert np.allclose(n, 0.25 * M * G * (1 + 9 * c**2 - 6 * c0 * c), rtol=0, atol=1e-12)
+
+
 @pytest.mark.parametrize("mu_s", [0.07, 0.23, 0.31, 0.45, 0.62, 1.3])
 def test_slip_onset_matches_pivot_contact_forces(mu_s):
     # mu_s below the peak of F/N in the first phase of the fall (where the floor must push the
@@ -330,8 +347,17 @@ def test_liftoff_and_flight_are_ballistic():
     assert np.isclose(traj.y_final["tip_x"],
                       cm_x0 + vx0 * dt - L / 2 * np.sin(y_l["theta"] + y_l["theta_dot"] * dt),
                       rtol=1e-8)
+    # Along the flight: a constant rate, and the CM on the parabola from the lift-off state.
     flight = ys["mode"] == FLIGHT
-    assert np.all(ys["tip_y"][flight] >= -1e-12) and np.max(ys["tip_y"]) > 1e-3
+    dt = ts[flight] - t_l
+    assert np.allclose(ys["theta_dot"][flight], y_l["theta_dot"], rtol=1e-8)
+    cm_y = ys["tip_y"][flight] + L / 2 * np.cos(ys["theta"][flight])
+    assert np.allclose(cm_y, cm_y0 + vy0 * dt - G * dt**2 / 2, rtol=0, atol=1e-8)
+    # The tip rises more than a centimetre and never dips below the floor; the run ends with the
+    # rod's lower end (by then its top) on the floor.
+    assert np.all(ys["tip_y"] >= -1e-12) and np.max(ys["tip_y"]) > 0.01
+    yf = {k: float(v) for k, v in traj.y_final.items()}
+    assert abs(min(yf["tip_y"], yf["tip_y"] + L * np.cos(yf["theta"]))) < 1e-9
 
 
 # -- energy bookkeeping ----------------------------------------------------------------------

@@ -10,6 +10,7 @@ import pytest
 import test_cli
 from helpers import INTEGRATION, ROUNDOFF, tol
 from numpy.polynomial import polynomial as P
+from scipy.optimize import brentq
 
 import jaxdyn as jd
 
@@ -70,6 +71,8 @@ def test_torque_free_equilibria_closed_form(inertia, momentum):
         for n in on_axis:
             ev = np.asarray(eq.eigenvalues[n])
             assert np.allclose(np.sort_complex(ev ** 2), [lam2, lam2], rtol=1e-10, atol=1e-14)
+            if k == mid:  # the saddle's growth rate lambda
+                assert np.isclose(eq.growth_rate[n], np.sqrt(lam2), rtol=rtol)
     energies = np.asarray(eq.energy)
     assert np.allclose(energies, 0.5 * np.sum(inertia * omega**2, axis=1), rtol=rtol)
     assert np.allclose(eq.separatrix_energies, [momentum**2 / (2 * inertia[mid])], rtol=rtol)
@@ -235,7 +238,7 @@ def rotor_on_axis_3_count(inertia, h, momentum):
     return n, stable
 
 
-@pytest.mark.parametrize("h", [0.3, 0.7, 2.5])
+@pytest.mark.parametrize("h", [0.3, 0.45, 0.7, 2.5])
 def test_gyrostat_saddles_move_and_vanish(h):
     inertia, momentum = np.array([1.0, 2.0, 3.0]), 1.0
     scene = scene_of(inertia, [0.0, 0.0, h])
@@ -243,11 +246,20 @@ def test_gyrostat_saddles_move_and_vanish(h):
     n, stable = rotor_on_axis_3_count(inertia, h, momentum)
     assert len(eq) == n
     omega = np.asarray(eq.omega)
+    # Directly: I w + h is parallel to w, and on the sphere.
+    total = inertia * omega + [0.0, 0.0, h]
+    assert np.allclose(np.cross(total, omega), 0, atol=tol(ROUNDOFF))
+    assert np.allclose(np.linalg.norm(total, axis=1), momentum, rtol=tol(ROUNDOFF))
     for sign in (1, -1):
         w3 = (sign * momentum - h) / inertia[2]
         k = np.flatnonzero(np.linalg.norm(omega - [0, 0, w3], axis=1) < 1e-10)
         assert len(k) == 1
         assert eq.kind[k[0]] == ("center" if stable[sign] else "saddle")
+        # Linearised about the spin: lambda^2 = -(L_3 - I_1 w_3)(L_3 - I_2 w_3) / (I_1 I_2).
+        total3 = sign * momentum
+        lam2 = -(total3 - inertia[0] * w3) * (total3 - inertia[1] * w3) / (inertia[0] * inertia[1])
+        ev = np.asarray(eq.eigenvalues[k[0]])
+        assert np.allclose(ev**2, lam2, rtol=1e-10, atol=1e-14)
     # Separatrices: every branch comes back to a saddle, on the sphere and at its energy.
     sep = jd.trace_separatrices(scene, eq, num=64)
     assert len(sep) == 2 * int(np.sum(eq.is_saddle))
@@ -258,6 +270,55 @@ def test_gyrostat_saddles_move_and_vanish(h):
         assert np.allclose(energy, np.asarray(sep.energy)[:, None], rtol=tol(INTEGRATION))
         total = np.linalg.norm(inertia * w + [0.0, 0.0, h], axis=-1)
         assert np.allclose(total, momentum, rtol=tol(INTEGRATION))
+
+
+def _crossings_of_h2(scene, omega0, t1):
+    """Times of the zero crossings of h_2 = I_2 omega_2 (the rotor is along e_3) after t = 0, on
+    the dense output (brentq)."""
+    traj = jd.simulate(scene, scene.state(omega=jnp.asarray(omega0)), t1, rtol=1e-12,
+                       atol=1e-14, dense=True, max_steps=100_000)
+
+    def h2(t):
+        return float(traj.evaluate(jnp.array([t]))["omega"][0, 1])
+
+    grid = np.linspace(0.0, t1, 4001)[1:]
+    values = np.asarray(traj.evaluate(jnp.asarray(grid))["omega"][:, 1])
+    i = np.flatnonzero(np.sign(values[1:]) != np.sign(values[:-1]))
+    return np.array([brentq(h2, grid[k], grid[k + 1], xtol=1e-13, rtol=1e-15) for k in i])
+
+
+def test_gyrostat_period_diverges_with_one_log_per_saddle_passed():
+    # Rotor h e_3 with h = 0.7 (I = (1, 2, 3), H = 1): one saddle, the spin about -e_3, whose
+    # separatrix is a figure of eight around the two centres near the minor axis. Near it the
+    # period grows like (n / lambda) ln(1 / |T - T_s|), n the saddle passages per period: n = 1
+    # inside a lobe (T > T_s), n = 2 outside both (T < T_s). Starts on the h_1 h_3 great circle
+    # (h_2 = 0), which every orbit crosses twice per period (the flow is reversible under
+    # h_2 -> -h_2), so the second crossing after the start ends one period; lambda from the
+    # closed form of the linearisation.
+    inertia, momentum, h = np.array([1.0, 2.0, 3.0]), 1.0, 0.7
+    scene = scene_of(inertia, [0.0, 0.0, h])
+    w3 = (-momentum - h) / inertia[2]
+    lam = np.sqrt(-(-momentum - inertia[0] * w3) * (-momentum - inertia[1] * w3)
+                  / (inertia[0] * inertia[1]))
+    t_sep = 0.5 * inertia[2] * w3**2
+
+    def energy(c):  # h = H (sqrt(1 - c^2), 0, c)
+        return 0.5 * ((1 - c**2) * momentum**2 / inertia[0] + (momentum * c - h) ** 2 / inertia[2])
+
+    # The lobe's centre has h_3 = I_1 h / (I_1 - I_3); between it and +e_3 the energy is monotonic.
+    c_lobe = inertia[0] * h / (inertia[0] - inertia[2])
+    for side, n in ((-1, 2), (1, 1)):
+        periods = []
+        for offset in (1e-5, 1e-6):
+            target = t_sep * (1 + side * offset)
+            c = brentq(lambda c, target=target: energy(c) - target, c_lobe, 1.0, xtol=1e-15,
+                       rtol=1e-15)
+            omega0 = (momentum * np.array([np.sqrt(1 - c**2), 0.0, c]) - [0.0, 0.0, h]) / inertia
+            t1 = (n * np.log(1 / offset) + 40.0) / lam
+            crossings = _crossings_of_h2(scene, omega0, t1)
+            periods.append(crossings[1])
+        slope = (periods[1] - periods[0]) / np.log(10)
+        assert np.isclose(slope, n / lam, rtol=1e-3), (side, slope, n / lam)
 
 
 # -- critical rotor momenta ----------------------------------------------------------------
@@ -283,6 +344,23 @@ def test_critical_rotor_momenta_against_the_stability_condition(inertia, axis, r
     eps = 1e-3 * abs(rate)
     for r in roots:
         assert stable(r - eps) != stable(r + eps)
+
+
+@pytest.mark.parametrize("h", [-1.5, -0.8, 0.0, 0.6, 1.3])
+def test_rotor_between_the_critical_momenta_leaves_the_spin_unstable(h):
+    # A spin at 1 rad/s about the intermediate axis of I = (1, 2, 3), with a rotor along it and a
+    # nudge of 1e-6 rad/s: between the critical rotor momenta it grows by orders of magnitude
+    # within 60 s; outside them it stays within a small multiple of the nudge.
+    inertia, rate, nudge = jnp.array([1.0, 2.0, 3.0]), 1.0, 1e-6
+    low, high = np.asarray(jd.critical_rotor_momenta(inertia, 1, rate))
+    scene = scene_of(inertia, [0.0, h, 0.0])
+    traj = jd.simulate(scene, scene.state(omega=jnp.array([nudge, rate, 0.0])), 60.0,
+                       ts=jnp.linspace(0.0, 60.0, 601), rtol=1e-10, atol=1e-12)
+    growth = np.max(np.abs(np.asarray(traj.omega)[:, [0, 2]])) / nudge
+    if low < h < high:
+        assert growth > 1e3, growth
+    else:
+        assert growth < 10, growth
 
 
 def test_critical_rotor_momentum_double_root():
