@@ -20,14 +20,15 @@ def test_notebooks_found():
 @pytest.mark.parametrize("path", PATHS, ids=[p.name for p in PATHS])
 def test_notebooks_are_stored_without_outputs(path):
     """The `.ipynb` is the one source of each notebook (edit it in Jupyter); it is committed
-    without outputs or execution counts (`nbstripout notebooks/*.ipynb` strips them), so diffs
-    show only what was written. The docs site executes them to show their figures."""
+    without outputs or execution counts (`nbstripout --keep-id notebooks/*.ipynb` strips them
+    and keeps the cell ids), so diffs show only what was written. The docs site executes
+    them to show their figures."""
     nb = nbformat.read(path, as_version=4)
     nbformat.validate(nb)
     for i, cell in enumerate(nb.cells):
         if cell.cell_type == "code":
             assert cell.outputs == [] and cell.execution_count is None, \
-                f"{path.name} cell {i} holds outputs: run nbstripout {path.name}"
+                f"{path.name} cell {i} holds outputs: run nbstripout --keep-id {path.name}"
 
 
 @pytest.mark.parametrize("path", PATHS, ids=[p.name for p in PATHS])
