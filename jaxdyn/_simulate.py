@@ -560,7 +560,9 @@ def _simulate_impl(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps,
     event = _event(scene, t0, y0, time_scale) if events else None
     # Traced sample times are saved by the solver itself (`Sampled`): `SaveAt(ts)` of traced
     # times carries diffrax's runtime check of them, a host callback.
-    sampled = solver_saves and ts is not None
+    # (Not for implicit solvers: diffrax reads their root finder, which the wrapper hides.)
+    sampled = (solver_saves and ts is not None
+               and not isinstance(solver, dfx.AbstractImplicitSolver))
     if sampled:
         if isinstance(adjoint, dfx.ForwardMode) and getattr(solver, "scan_kind", "") is None:
             # What diffrax does for forward mode, done before wrapping (it cannot see inside).
