@@ -61,6 +61,24 @@ def as_float_array(field: str, value, shape: tuple[int, ...] | None = None, dtyp
     return arr
 
 
+def as_rows(field: str, value, dtype=None):
+    """An `(N, 3)` array of vectors, one per device (one vector alone is one row)."""
+    arr = as_float_array(field, value, None, dtype)
+    arr = arr[None] if arr.ndim == 1 else arr
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise ParameterError(f"{field} has shape {arr.shape}: expected (N, 3)")
+    return arr
+
+
+def as_per_row(field: str, value, n: int, dtype):
+    """An `(n,)` array, one value per device (one value alone is given to all)."""
+    arr = as_float_array(field, value, None, dtype)
+    arr = jnp.broadcast_to(arr, (n,)) if arr.ndim == 0 else arr
+    if arr.shape != (n,):
+        raise ParameterError(f"{field} has shape {arr.shape}: expected ({n},)")
+    return arr
+
+
 def finite_check(field: str, x) -> Check:
     return (field, x, ~jnp.isfinite(x), "must be finite")
 

@@ -39,6 +39,8 @@ from .._validation import (
     Check,
     ParameterError,
     as_float_array,
+    as_per_row,
+    as_rows,
     finite_check,
     nonzero_unit,
     positive_check,
@@ -119,29 +121,17 @@ class Thrusters(AbstractEffect):
         if control not in LAWS:
             raise ParameterError(f"thrusters.control={control!r}: allowed are {LAWS}")
         self.control = control
-        positions = as_float_array("thrusters.positions", positions)
-        positions = positions[None] if positions.ndim == 1 else positions
-        if positions.ndim != 2 or positions.shape[1] != 3:
-            raise ParameterError(f"thrusters.positions has shape {positions.shape}: "
-                                 "expected (N, 3)")
+        positions = as_rows("thrusters.positions", positions)
         n, dtype = positions.shape[0], positions.dtype
-        directions = as_float_array("thrusters.directions", directions, None, dtype)
-        directions = directions[None] if directions.ndim == 1 else directions
+        directions = as_rows("thrusters.directions", directions, dtype)
         if directions.shape != (n, 3):
             raise ParameterError(f"thrusters.directions has shape {directions.shape}: "
                                  f"expected ({n}, 3), one row per thruster")
         self.positions = positions
         self.directions = nonzero_unit("thrusters.directions", directions, axis=1)
 
-        def per_thruster(name, value):
-            arr = as_float_array(f"thrusters.{name}", value, None, dtype)
-            arr = jnp.broadcast_to(arr, (n,)) if arr.ndim == 0 else arr
-            if arr.shape != (n,):
-                raise ParameterError(f"thrusters.{name} has shape {arr.shape}: expected ({n},)")
-            return arr
-
-        self.thrust = per_thruster("thrust", thrust)
-        self.min_impulse = per_thruster("min_impulse", min_impulse)
+        self.thrust = as_per_row("thrusters.thrust", thrust, n, dtype)
+        self.min_impulse = as_per_row("thrusters.min_impulse", min_impulse, n, dtype)
         for name, value in (("exhaust_velocity", exhaust_velocity), ("gain", gain),
                             ("deadband", deadband), ("period", period)):
             setattr(self, name, as_float_array(f"thrusters.{name}", value, (), dtype))

@@ -27,6 +27,8 @@ from .._validation import (
     Check,
     ParameterError,
     as_float_array,
+    as_per_row,
+    as_rows,
     finite_check,
     nonzero_unit,
     positive_check,
@@ -98,23 +100,13 @@ class Wheels(AbstractEffect):
         max_speed: Float[ArrayLike, " N"] | None = None,
         damping: Float[ArrayLike, " N"] | None = None,
     ):
-        axes = as_float_array("wheels.axes", axes)
-        if axes.ndim == 1:
-            axes = axes[None]
-        if axes.ndim != 2 or axes.shape[1] != 3:
-            raise ParameterError(f"wheels.axes has shape {axes.shape}: expected (N, 3)")
+        axes = as_rows("wheels.axes", axes)
         n = axes.shape[0]
         dtype = axes.dtype
         self.axes = nonzero_unit("wheels.axes", axes, axis=1)
 
         def vector(name, value):
-            if value is None:
-                return None
-            arr = as_float_array(f"wheels.{name}", value, None, dtype)
-            arr = jnp.broadcast_to(arr, (n,)) if arr.ndim == 0 else arr
-            if arr.shape != (n,):
-                raise ParameterError(f"wheels.{name} has shape {arr.shape}: expected ({n},)")
-            return arr
+            return None if value is None else as_per_row(f"wheels.{name}", value, n, dtype)
 
         self.inertia = vector("inertia", inertia)
         self.motor = motor if (motor is None or callable(motor)) else vector("motor", motor)
