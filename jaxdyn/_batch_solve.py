@@ -351,6 +351,33 @@ class _Loop:
             return m
         return jax.lax.psum(m.astype(jnp.int32), self.axis_name) > 0
 
+    def start(self, p, y0, t0, invalid, dt0, atol, time_scale):
+        """The carry at `t0`: rows with invalid inputs marked, those whose events have fired
+        already ended (also returned, as `at_start`), the first step sizes, and the states
+        saved at the save times at `t0`."""
+        n, dtype = y0[0].shape[0], y0[0].dtype
+        status = jnp.where(invalid, STATUS.index("invalid_input"), _RUNNING).astype(jnp.int32)
+        tvec = jnp.full((n,), t0)
+        at_start = jnp.zeros((n,), bool)
+        if self.G is not None:
+            at_start = (self.G(p, tvec, y0) <= 0) & ~invalid
+            status = jnp.where(at_start, _EVENT, status)
+        if dt0 is None:
+            dt = initial_step(self.f, p, tvec, y0, self.f(p, tvec, y0), self.rtol, atol,
+                              time_scale, self.tab.order)
+        else:
+            dt = jnp.full((n,), jnp.asarray(dt0, dtype))
+        dt = jnp.minimum(dt, self.t1 - t0).astype(dtype)
+        if self.lockstep:
+            dt = jnp.full((n,), self.bmin(jnp.where(status == _RUNNING, dt, jnp.inf)))
+        saved = None if self.ts is None else tuple(
+            jnp.full((self.ts.shape[0], n), jnp.inf, dtype) for _ in y0)
+        saved, nxt = _save(self.ts, saved, jnp.zeros((n,), jnp.int32), ~invalid, t0,
+                           lambda s: y0)
+        zeros = jnp.zeros((n,), jnp.int32)
+        return dict(t=tvec, y=y0, dt=dt, status=status, nacc=zeros, nrej=zeros, p=p,
+                    saved=saved, nxt=nxt, atol=atol, T=time_scale), at_start
+
     # Each iteration decides on the attempt the one before it computed, then computes the next:
     # the attempt (`h`, and `y1` with the error norm packed by `pack_pairs`, so that the stages
     # are computed once for two rows) is carried from one iteration to the next, where XLA
@@ -469,12 +496,8 @@ def batch_solve(
     tab = tableau(solver)
     n = jax.tree.leaves(y0)[0].shape[0]
     rows = _Rows(y0)
-    if isinstance(atol, dict | tuple | list):  # per trajectory and variable: rows (n,) each
-        atol = rows.of(_last(jax.tree.map(
-            lambda a, x: jnp.broadcast_to(a.reshape((n,) + (1,) * (x.ndim - 1)), x.shape),
-            atol, y0)))
-    else:
-        atol = rows.of(_last(jax.tree.map(lambda x: jnp.full(x.shape, atol, x.dtype), y0)))
+    atol = rows.of(_last(jax.tree.map(lambda a, x: jnp.broadcast_to(
+        a.reshape((n,) + (1,) * (x.ndim - 1)), x.shape), _per_trajectory(atol, y0), y0)))
     y0, params = rows.of(_last(y0)), _last(params)
     dtype = y0[0].dtype
     # (sines and cosines in arithmetic that XLA vectorises: on a CPU, the C library's scalar
@@ -497,30 +520,8 @@ def batch_solve(
                  lockstep=lockstep, axis_name=axis_name)
     time_scale = jnp.ones((n,), dtype) if time_scale is None else time_scale
 
-    # -- start ----------------------------------------------------------------------------------
     invalid = jnp.any(flags, axis=1)
-    status = jnp.where(invalid, STATUS.index("invalid_input"), _RUNNING).astype(jnp.int32)
-    tvec = jnp.full((n,), t0)
-    at_start = jnp.zeros((n,), bool)
-    if G is not None:
-        at_start = (G(params, tvec, y0) <= 0) & ~invalid
-        status = jnp.where(at_start, _EVENT, status)
-    if dt0 is None:
-        dt = initial_step(f, params, tvec, y0, f(params, tvec, y0), rtol, atol, time_scale,
-                          tab.order)
-    else:
-        dt = jnp.full((n,), jnp.asarray(dt0, dtype))
-    dt = jnp.minimum(dt, t1 - t0).astype(dtype)
-    if lockstep:
-        dt = jnp.full((n,), loop.bmin(jnp.where(status == _RUNNING, dt, jnp.inf)))
-    saved = None if ts is None else tuple(jnp.full((ts.shape[0], n), jnp.inf, dtype)
-                                          for _ in y0)
-    saved, nxt = _save(ts, saved, jnp.zeros((n,), jnp.int32), ~invalid, t0, lambda s: y0)
-    zeros = jnp.zeros((n,), jnp.int32)
-    carry = dict(t=tvec, y=y0, dt=dt, status=status, nacc=zeros, nrej=zeros, p=params,
-                 saved=saved, nxt=nxt, atol=atol, T=time_scale)
-
-    # -- steps, then events ---------------------------------------------------------------------
+    carry, at_start = loop.start(params, y0, t0, invalid, dt0, atol, time_scale)
     carry = loop.run(loop.prepare(carry), n, compact_rows)
     t, y, status, p = carry["t"], carry["y"], carry["status"], carry["p"]
     saved, nxt = carry["saved"], carry["nxt"]
@@ -537,6 +538,14 @@ def batch_solve(
     return BatchRun(t_final=t, y_final=_first(rows.tree(y)), ys=saved, event=event,
                     status=status, reason=jnp.argmax(flags, axis=1).astype(jnp.int32),
                     steps=carry["nacc"], rejected=carry["nrej"])
+
+
+def _per_trajectory(atol, y0):
+    """`atol` as a pytree like `y0` with one value per trajectory and variable (leaves `(n,)`),
+    from a scalar or from such a pytree."""
+    if isinstance(atol, dict | tuple | list):
+        return atol
+    return jax.tree.map(lambda x: jnp.full(x.shape[:1], atol, x.dtype), y0)
 
 
 def _locate_events(loop: _Loop, crossed, p, t, y, dt, saved, nxt):
