@@ -8,7 +8,7 @@ import os
 import time
 from collections.abc import Callable, Mapping, Sequence
 from functools import partial
-from typing import Any
+from typing import Any, NamedTuple
 
 import diffrax as dfx
 import equinox as eqx
@@ -212,8 +212,20 @@ class _Moments:
 
 # -- what is varied ----------------------------------------------------------------------------
 
-def _targets(scene: Scene, vary: Mapping[str, AbstractDistribution]):
-    """Resolve varied names to (kind, base, index, shape) with kind 'state' or 'parameter'."""
+class _Target(NamedTuple):
+    """One varied name, resolved: `kind` is `"state"` or `"parameter"`, `base` the variable or
+    parameter, `index` the component (or `None`: all of it), `shape` what is drawn."""
+
+    name: str
+    kind: str
+    base: str
+    index: tuple[int, ...] | None
+    shape: tuple[int, ...]
+    dist: AbstractDistribution | None
+
+
+def _targets(scene: Scene, vary: Mapping[str, AbstractDistribution]) -> tuple[_Target, ...]:
+    """Resolve and check the varied names."""
     state = scene.state_shapes()
     params = scene.parameters()
     out = []
@@ -244,7 +256,7 @@ def _targets(scene: Scene, vary: Mapping[str, AbstractDistribution]):
             raise ParameterError(
                 f"vary[{name!r}]: a distribution of shape {dist.shape} does not fit {base} "
                 f"{'component' if index is not None else 'of shape ' + str(shape)}") from None
-        out.append((name, kind, base, index, shape, dist))
+        out.append(_Target(name, kind, base, index, shape, dist))
     return tuple(out)
 
 
@@ -252,110 +264,159 @@ def _drawn(targets, key, index, dtype) -> dict[str, jax.Array]:
     """The values trajectory `index` draws, by varied name: one sub-key per name from
     `fold_in(key, index)`."""
     k = jax.random.fold_in(key, index)
-    return {name: dist.sample(jax.random.fold_in(k, name_seed(name)), shape, dtype)
-            for name, _, _, _, shape, dist in targets}
+    return {t.name: t.dist.sample(jax.random.fold_in(k, name_seed(t.name)), t.shape, dtype)
+            for t in targets}
 
 
 def _draw(targets, key, index, y0, params, dtype):
     """The varied values of trajectory `index` applied to its `y0` and parameters."""
     drawn = _drawn(targets, key, index, dtype)
     y0, params = dict(y0), dict(params)
-    for name, kind, base, idx, _, _ in targets:
-        v = drawn[name]
-        store = y0 if kind == "state" else params
-        old = jnp.asarray(store[base], dtype)
-        store[base] = v if idx is None else old.at[idx].set(v)
+    for t in targets:
+        v = drawn[t.name]
+        store = y0 if t.kind == "state" else params
+        old = jnp.asarray(store[t.base], dtype)
+        store[t.base] = v if t.index is None else old.at[t.index].set(v)
     return y0, params
 
 
 # -- one chunk ---------------------------------------------------------------------------------
 
-def _chunk_core(dyn, sharded, *, static, config, axis_name):
-    """Simulate and observe one chunk (or one device's shard of it)."""
-    scene, base_y0, base_params, key, t0, t1, ts, rtol, atol, dt0, dists, n_total = eqx.combine(
-        dyn, static)
-    (targets, solver, mode, max_steps, observe, events, compact_rows) = config
-    targets = tuple(t + (d,) for t, d in zip(targets, dists))
-    indices, batch_y0, batch_params = sharded
-    dtype = t0.dtype
-    m = indices.shape[0]
+class _Shared(NamedTuple):
+    """What every chunk of a run shares. Its arrays travel as arguments of the compiled chunk
+    (new values do not recompile); the rest is static."""
 
-    def one(index, by0, bp):
-        y0 = {**base_y0, **by0}
-        params = {**base_params, **bp}
-        return _draw(targets, key, index, y0, params, dtype)
+    scene: Scene
+    y0: dict[str, Any]  # the unbatched initial values
+    params: dict[str, Any]  # the unbatched parameters (varied ones start from the scene's)
+    key: jax.Array
+    t0: jax.Array
+    t1: jax.Array
+    ts: Any
+    rtol: jax.Array
+    atol: jax.Array
+    dt0: Any
+    dists: tuple  # the distributions of the varied names, in the order of the targets
+    n: jax.Array  # trajectories in the run (rows past it are a last chunk's padding)
 
-    y0, params = jax.vmap(one)(indices, batch_y0, batch_params)
 
-    def scene_of(p):
-        return scene.replace(p) if p else scene
+@dataclasses.dataclass(frozen=True)
+class _ChunkConfig:
+    """The static settings of the compiled chunk (part of its cache key)."""
 
-    def violations(p, y):
-        return scene_of(p).violations(y)[0]
+    targets: tuple[_Target, ...]  # without their distributions, which are arguments
+    solver: Any
+    mode: str
+    max_steps: int
+    observe: Callable
+    events: bool
+    compact_rows: int | None
 
-    flags = jax.vmap(violations)(params, y0)
-    names = tuple(scene.events()) if events else ()
-    if mode == "vmap":
-        controller = ScaledPIDController(rtol=rtol, atol=atol)
 
-        def run(p, y):
-            return _simulate(scene_of(p), y, t0, t1, ts, solver=solver, controller=controller,
-                             dt0=dt0, max_steps=max_steps,
-                             adjoint=dfx.RecursiveCheckpointAdjoint(), events=events,
-                             meter=dfx.NoProgressMeter(), dense=False, checks=False)
+def _scene_of(scene, p):
+    return scene.replace(p) if p else scene
 
-        trajs = eqx.filter_vmap(run)(params, y0)
-        invalid = jnp.any(flags, axis=1)
-        status = jnp.where(invalid, jnp.int32(Outcome.invalid_input), trajs.outcome)
-        reason = jnp.argmax(flags, axis=1).astype(jnp.int32)
-        steps = trajs.stats["num_accepted_steps"]
+
+def _chunk_core(dyn, rows, *, static, config: _ChunkConfig, axis_name):
+    """Simulate and observe one chunk (or one device's shard of it): its observed values,
+    their moments over the successful trajectories, and each trajectory's status, reason
+    and steps. `rows`: the trajectories' indices and their rows of the batched inputs."""
+    shared = eqx.combine(dyn, static)
+    indices = rows[0]
+    y0, params = _chunk_inputs(shared, config, rows)
+    flags = jax.vmap(lambda p, y: _scene_of(shared.scene, p).violations(y)[0])(params, y0)
+    if config.mode == "vmap":
+        trajs, status, reason, steps = _run_vmap(shared, config, params, y0, flags)
     else:
-        def field(p, t, y):
-            return scene_of(p).vector_field(t, y)
-
-        conditions = None
-        if names:
-            def conditions(p, t, y):
-                fns = scene_of(p).events()
-                return jnp.stack([fns[k](t, y) for k in names])
-
-        def tolerances(p, y):  # each variable's floor: FLOOR rtol times its natural scale
-            bound = ScaledPIDController(rtol=rtol, atol=atol).bind(scene_of(p), t0, t1, y)
-            return {k: FLOOR * rtol * v for k, v in bound.scales.items()}, bound.time_scale
-
-        floors, time_scale = jax.vmap(tolerances)(params, y0)
-        r = batch_solve(field, conditions, names, flags, params, y0, t0, t1, ts,
-                        solver=solver, rtol=rtol, atol=floors, max_steps=max_steps,
-                        lockstep=mode == "lockstep", dt0=dt0, axis_name=axis_name,
-                        compact_rows=compact_rows, time_scale=time_scale)
-        status, reason, steps = r.status, r.reason, r.steps
-
-        def build(p, y_start, t_final, y_final, ys, event, status, steps, rejected):
-            if ts is None:
-                ts_i = jnp.stack([t0, t_final])
-                ys_i = jax.tree.map(lambda a, b: jnp.stack([a, b]), y_start, y_final)
-            else:
-                ts_i = jnp.where(ts <= t_final, ts, jnp.inf)
-                ys_i = ys
-            return Trajectory(scene=scene_of(p), ts=ts_i, ys=ys_i, t_final=t_final,
-                              y_final=y_final, event=event, result=to_diffrax(status),
-                              outcome=status,
-                              stats={"num_accepted_steps": steps, "num_rejected_steps": rejected})
-
-        trajs = eqx.filter_vmap(build)(params, y0, r.t_final, r.y_final, r.ys, r.event, r.status,
-                                r.steps, r.rejected)
-    observed = eqx.filter_vmap(observe)(trajs)
+        trajs, status, reason, steps = _run_engine(shared, config, params, y0, flags, axis_name)
+    observed = eqx.filter_vmap(config.observe)(trajs)
     if not isinstance(observed, Mapping):
         raise ParameterError(f"observe returned {type(observed).__name__}: expected a dict of "
                              "arrays")
     # Per-chunk moments of every observed value over the successful trajectories (the padding
     # of a last, partial chunk excluded), merged on the host chunk by chunk.
-    ok = ((status == _OK[0]) | (status == _OK[1])) & (indices < n_total)
+    ok = ((status == _OK[0]) | (status == _OK[1])) & (indices < shared.n)
     # All values as columns of one array: five reductions in all, whatever the outputs.
-    columns = [jnp.asarray(observed[k]).astype(dtype).reshape(m, -1) for k in sorted(observed)]
+    m = indices.shape[0]
+    columns = [jnp.asarray(observed[k]).astype(shared.t0.dtype).reshape(m, -1)
+               for k in sorted(observed)]
     moments = _chunk_moments(jnp.concatenate(columns, axis=1), ok)
     return {"values": dict(observed), "moments": moments, "status": status, "reason": reason,
             "steps": steps}
+
+
+def _chunk_inputs(shared: _Shared, config: _ChunkConfig, rows):
+    """Each trajectory's initial state and parameters: the shared values, its rows of the
+    batched inputs, then its draws."""
+    indices, batch_y0, batch_params = rows
+    targets = tuple(t._replace(dist=d) for t, d in zip(config.targets, shared.dists))
+
+    def one(index, by0, bp):
+        return _draw(targets, shared.key, index, {**shared.y0, **by0},
+                     {**shared.params, **bp}, shared.t0.dtype)
+
+    return jax.vmap(one)(indices, batch_y0, batch_params)
+
+
+def _run_vmap(shared: _Shared, config: _ChunkConfig, params, y0, flags):
+    """`jax.vmap` over `simulate`'s program: the trajectories, status, reasons and steps."""
+    controller = ScaledPIDController(rtol=shared.rtol, atol=shared.atol)
+
+    def run(p, y):
+        return _simulate(_scene_of(shared.scene, p), y, shared.t0, shared.t1, shared.ts,
+                         solver=config.solver, controller=controller, dt0=shared.dt0,
+                         max_steps=config.max_steps, adjoint=dfx.RecursiveCheckpointAdjoint(),
+                         events=config.events, meter=dfx.NoProgressMeter(), dense=False,
+                         checks=False)
+
+    trajs = eqx.filter_vmap(run)(params, y0)
+    invalid = jnp.any(flags, axis=1)
+    status = jnp.where(invalid, jnp.int32(Outcome.invalid_input), trajs.outcome)
+    reason = jnp.argmax(flags, axis=1).astype(jnp.int32)
+    return trajs, status, reason, trajs.stats["num_accepted_steps"]
+
+
+def _run_engine(shared: _Shared, config: _ChunkConfig, params, y0, flags, axis_name):
+    """The batch engine (`batch_solve`): the trajectories, status, reasons and steps."""
+    scene, t0, t1, rtol = shared.scene, shared.t0, shared.t1, shared.rtol
+    names = tuple(scene.events()) if config.events else ()
+
+    def field(p, t, y):
+        return _scene_of(scene, p).vector_field(t, y)
+
+    conditions = None
+    if names:
+        def conditions(p, t, y):
+            fns = _scene_of(scene, p).events()
+            return jnp.stack([fns[k](t, y) for k in names])
+
+    def tolerances(p, y):  # each variable's floor: FLOOR rtol times its natural scale
+        bound = ScaledPIDController(rtol=rtol, atol=shared.atol).bind(
+            _scene_of(scene, p), t0, t1, y)
+        return {k: FLOOR * rtol * v for k, v in bound.scales.items()}, bound.time_scale
+
+    floors, time_scale = jax.vmap(tolerances)(params, y0)
+    r = batch_solve(field, conditions, names, flags, params, y0, t0, t1, shared.ts,
+                    solver=config.solver, rtol=rtol, atol=floors, max_steps=config.max_steps,
+                    lockstep=config.mode == "lockstep", dt0=shared.dt0, axis_name=axis_name,
+                    compact_rows=config.compact_rows, time_scale=time_scale)
+    trajs = eqx.filter_vmap(partial(_engine_trajectory, scene, t0, shared.ts))(
+        params, y0, r.t_final, r.y_final, r.ys, r.event, r.status, r.steps, r.rejected)
+    return trajs, r.status, r.reason, r.steps
+
+
+def _engine_trajectory(scene, t0, ts, p, y_start, t_final, y_final, ys, event, status, steps,
+                       rejected) -> Trajectory:
+    """One trajectory of the batch engine's results, as `simulate` returns it."""
+    if ts is None:
+        ts_i = jnp.stack([t0, t_final])
+        ys_i = jax.tree.map(lambda a, b: jnp.stack([a, b]), y_start, y_final)
+    else:
+        ts_i = jnp.where(ts <= t_final, ts, jnp.inf)
+        ys_i = ys
+    return Trajectory(scene=_scene_of(scene, p), ts=ts_i, ys=ys_i, t_final=t_final,
+                      y_final=y_final, event=event, result=to_diffrax(status), outcome=status,
+                      stats={"num_accepted_steps": steps, "num_rejected_steps": rejected})
 
 
 def _chunk_moments(v, ok):
@@ -384,8 +445,10 @@ default; the chunk is long runs of arithmetic on contiguous rows, which 512-bit 
 the CPU has them, AVX-512) do about 1.4 times faster. Elsewhere the option changes nothing."""
 
 
-def _compiled_chunk(dyn, static, sharded, config, devices):
-    """The compiled chunk function for these shapes and this configuration (cached)."""
+def _compiled_chunk(dyn, static, sharded, config: _ChunkConfig, devices):
+    """The compiled chunk function for these shapes and this configuration (cached), and how
+    its inputs are placed: `"per_device"` (a list of single-device programs), a sharding, or
+    `None` (one device); also the seconds spent compiling it now."""
     leaves, treedef = jax.tree_util.tree_flatten(static)
     key = (treedef, tuple(leaves), jax.tree.structure(dyn),
            tuple((x.shape, x.dtype) for x in jax.tree.leaves(dyn)),
@@ -394,53 +457,108 @@ def _compiled_chunk(dyn, static, sharded, config, devices):
            config, tuple(devices))
     if key in _COMPILED:
         return _COMPILED[key], 0.0
-    body = partial(_chunk_core, static=static, config=config, axis_name=None)
     options = CPU_COMPILER_OPTIONS if devices[0].platform == "cpu" else None
     start = time.perf_counter()
-    if len(devices) > 1 and config[2] == "adaptive":
-        # Per-trajectory stepping needs nothing across devices: one single-device program
-        # per device, each given its rows of the chunk. (A program spanning several CPU
-        # devices is dispatched only once the one before it has finished on every device, so
-        # each chunk would wait for its slowest shard; single-device programs queue up, and
-        # each device goes on to its next chunk when it is done with its own rows.)
-        rows = jax.tree.leaves(sharded)[0].shape[0] // len(devices)
+    if len(devices) > 1 and config.mode == "adaptive":
+        _COMPILED[key] = (_compile_per_device(dyn, static, sharded, config, devices, options),
+                          "per_device")
+    else:
+        _COMPILED[key] = _compile_sharded(dyn, static, sharded, config, devices, options)
+    return _COMPILED[key], time.perf_counter() - start
 
-        def lower(device):
-            where = jax.sharding.SingleDeviceSharding(device)
-            spec = [jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype,
-                                                                sharding=where), dyn),
-                    jax.tree.map(lambda x: jax.ShapeDtypeStruct((rows,) + x.shape[1:], x.dtype,
-                                                                sharding=where), sharded)]
-            return jax.jit(body).lower(*spec)
 
-        lowered = [lower(device) for device in devices]
-        with concurrent.futures.ThreadPoolExecutor(len(devices)) as pool:  # XLA frees the GIL
-            compiled = list(pool.map(lambda lw: lw.compile(options), lowered))
-        _COMPILED[key] = (compiled, "per_device")
-        return _COMPILED[key], time.perf_counter() - start
+def _compile_per_device(dyn, static, sharded, config, devices, options):
+    """One single-device program per device, each given its rows of the chunk.
+
+    Per-trajectory stepping needs nothing across devices. (A program spanning several CPU
+    devices is dispatched only once the one before it has finished on every device, so each
+    chunk would wait for its slowest shard; single-device programs queue up, and each device
+    goes on to its next chunk when it is done with its own rows.)"""
+    body = partial(_chunk_core, static=static, config=config, axis_name=None)
+    rows = jax.tree.leaves(sharded)[0].shape[0] // len(devices)
+
+    def lower(device):
+        where = jax.sharding.SingleDeviceSharding(device)
+        spec = [jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype,
+                                                            sharding=where), dyn),
+                jax.tree.map(lambda x: jax.ShapeDtypeStruct((rows,) + x.shape[1:], x.dtype,
+                                                            sharding=where), sharded)]
+        return jax.jit(body).lower(*spec)
+
+    lowered = [lower(device) for device in devices]
+    with concurrent.futures.ThreadPoolExecutor(len(devices)) as pool:  # XLA frees the GIL
+        return list(pool.map(lambda lw: lw.compile(options), lowered))
+
+
+def _compile_sharded(dyn, static, sharded, config, devices, options):
+    """One program over every device (the chunk's rows split across a mesh), or over the one
+    device: the compiled program and the sharding of its batched inputs."""
+    body = partial(_chunk_core, static=static, config=config, axis_name=None)
     sharding, shardings = None, {}
     if len(devices) > 1:
         mesh = jax.sharding.Mesh(np.asarray(devices), ("batch",))
         spec, whole = jax.sharding.PartitionSpec("batch"), jax.sharding.PartitionSpec()
         sharding = jax.sharding.NamedSharding(mesh, spec)
-        if config[2] == "vmap":
+        if config.mode == "vmap":
             # jax.vmap over simulate: XLA partitions the batch itself (diffrax's event root
             # finding does not trace inside shard_map).
             replicated = jax.sharding.NamedSharding(mesh, whole)
             shardings = {"in_shardings": (replicated, sharding), "out_shardings": {
                 "values": sharding, "moments": replicated, "status": sharding,
                 "reason": sharding, "steps": sharding}}
-        else:
+        else:  # lock-step reductions span the shards
             body = jax.shard_map(
                 partial(_chunk_core, static=static, config=config, axis_name="batch"),
                 mesh=mesh, in_specs=(whole, spec), out_specs=spec, check_vma=False)
-    compiled = jax.jit(body, **shardings).lower(dyn, sharded).compile(options)
-    seconds = time.perf_counter() - start
-    _COMPILED[key] = (compiled, sharding)
-    return _COMPILED[key], seconds
+    return jax.jit(body, **shardings).lower(dyn, sharded).compile(options), sharding
 
 
 # -- the ensemble ------------------------------------------------------------------------------
+
+@dataclasses.dataclass(frozen=True)
+class _Inputs:
+    """An ensemble's inputs, resolved and checked."""
+
+    scene: Scene
+    targets: tuple[_Target, ...]
+    y_single: dict[str, Any]  # unbatched initial values
+    y_batch: dict[str, Any]  # initial values with a leading axis of length n
+    p_single: dict[str, Any]
+    p_batch: dict[str, Any]
+    n: int
+    key: jax.Array
+    t0: jax.Array
+    t1: jax.Array
+    ts: Any
+    solver: Any
+    rtol: float
+    atol: float
+    dt0: Any
+    max_steps: int
+    mode: str
+    events: bool
+    observe: Callable
+    keep: tuple[str, ...] | None  # the kept observations (None: all)
+    vary: dict[str, AbstractDistribution]
+    messages: tuple[str, ...]  # what each check of the inputs means, by the index in `reason`
+
+    @property
+    def dtype(self):
+        return self.t0.dtype
+
+
+@dataclasses.dataclass(frozen=True)
+class Plan:
+    """How an ensemble runs: `chunks` chunks of `chunk_size` trajectories, each sharded across
+    `devices`, in `mode`; `fingerprint` describes the run for the chunk files of a resumable
+    one (`None`: no files)."""
+
+    chunk_size: int
+    chunks: int
+    devices: tuple[jax.Device, ...]
+    mode: str
+    fingerprint: dict[str, Any] | None
+
 
 def _batched(name, tree, shapes, n):
     """Split `tree` (a dict) into unbatched values and values with a leading batch axis."""
@@ -461,6 +579,291 @@ def _batched(name, tree, shapes, n):
             raise ParameterError(
                 f"{name}[{k!r}] has shape {tuple(v.shape)}: expected {want} or (n,) + {want}")
     return single, batch, n
+
+
+def _split_inputs(scene, y0, parameters, targets, n):
+    """`y0` and `parameters` split into unbatched and batched values, and the number of
+    trajectories (given, or the rows of the batched inputs)."""
+    shapes = scene.state_shapes()
+    if not isinstance(y0, Mapping) or set(y0) != set(shapes):
+        raise ParameterError(
+            f"y0 has variables {sorted(y0) if isinstance(y0, Mapping) else type(y0).__name__}: "
+            f"this scene integrates {sorted(shapes)}")
+    y_single, y_batch, n_rows = _batched("y0", y0, shapes, None)
+    nominal = scene.parameters()
+    param_shapes = {k: tuple(np.shape(v)) for k, v in nominal.items()}
+    parameters = dict(parameters or {})
+    unknown = sorted(set(parameters) - set(param_shapes))
+    if unknown:
+        raise ParameterError(f"parameters: unknown {unknown}: this scene has "
+                             f"{sorted(param_shapes)}")
+    p_single, p_batch, n_rows = _batched("parameters", parameters, param_shapes, n_rows)
+    for t in targets:  # varied parameters start from the scene's values
+        if t.kind == "parameter" and t.base not in p_single and t.base not in p_batch:
+            p_single[t.base] = nominal[t.base]
+    if n is None:
+        if n_rows is None:
+            raise ParameterError("n: give the number of trajectories (no input has a batch axis)")
+        n = n_rows
+    if not isinstance(n, int | np.integer) or n <= 0:
+        raise ParameterError(f"n={n!r}: must be a positive integer")
+    if n_rows is not None and n_rows != n:
+        raise ParameterError(f"n={n}: the batched inputs have {n_rows} rows")
+    return y_single, y_batch, p_single, p_batch, int(n)
+
+
+def _resolve(scene, y0, t1, *, n, key, vary, parameters, t0, ts, observe, keep, solver, rtol,
+             atol, dt0, max_steps, mode, events) -> _Inputs:
+    """The inputs of `ensemble`, checked as `simulate` checks one run's, with defaults
+    filled in."""
+    if not isinstance(scene, Scene):
+        raise ParameterError(f"scene={scene!r}: expected a jaxdyn.Scene")
+    if mode not in MODES:
+        raise ParameterError(f"mode={mode!r}: allowed are {list(MODES)}")
+    vary = dict(vary or {})
+    targets = _targets(scene, vary)
+    y_single, y_batch, p_single, p_batch, n = _split_inputs(scene, y0, parameters, targets, n)
+    # Check the run's settings on one unbatched trajectory, as simulate would.
+    example = {k: jnp.asarray(v[0] if k in y_batch else v) for k, v in y0.items()}
+    ex_y0, t0, t1, ts, solver, _, dt0 = _prepare_run(
+        scene, example, t0, t1, ts, solver, rtol, atol, None, dt0, max_steps)
+    rtol, atol = (float(x) for x in check_tolerances(rtol, atol, t0.dtype))
+    if mode != "vmap":
+        if events and scene.max_switches > 0:
+            raise ParameterError(
+                f"mode={mode!r}: this scene switches during a run (a {scene.body.kind}"
+                f"{''.join(f', {e.kind}' for e in scene.effects if e.max_switches)}); use "
+                "mode='vmap'")
+        tableau(solver)
+    if isinstance(key, int | np.integer):
+        key = jax.random.key(int(key))
+    return _Inputs(
+        scene=scene, targets=targets, y_single=y_single, y_batch=y_batch, p_single=p_single,
+        p_batch=p_batch, n=n, key=key, t0=t0, t1=t1, ts=ts, solver=solver, rtol=rtol,
+        atol=atol, dt0=dt0, max_steps=int(max_steps), mode=mode, events=bool(events),
+        observe=final_state if observe is None else observe,
+        keep=(None if keep else ()) if isinstance(keep, bool) else tuple(keep), vary=vary,
+        messages=tuple(scene.violations(ex_y0)[1]))
+
+
+def _chunk_size(n: int, d: int, chunk_size) -> int:
+    """Trajectories per chunk, a multiple of the `d` devices, no more than the run needs."""
+    if chunk_size is None:
+        # Equal chunks of at most DEFAULT_CHUNK, so that no chunk is mostly padding, with rows
+        # per device a multiple of 8: XLA's CPU loops vectorise whole only over such lengths
+        # (a chunk of 7143 rows per device ran at half the speed of one of 7144).
+        per_device = math.ceil(n / (math.ceil(n / DEFAULT_CHUNK) * d))
+        chunk_size = math.ceil(per_device / 8) * 8 * d
+    if not isinstance(chunk_size, int | np.integer) or chunk_size <= 0:
+        raise ParameterError(f"chunk_size={chunk_size!r}: must be a positive integer")
+    # No larger than the run needs (a chunk of 1e8 rows for n = 10 would only allocate padding).
+    return int(math.ceil(min(int(chunk_size), n) / d) * d)
+
+
+def _fingerprint(inputs: _Inputs, devices) -> dict[str, Any]:
+    """The run's description, which the chunk files of a resumable run are checked against."""
+    observe = inputs.observe
+    return {
+        "format": 2,  # chunk files hold per-chunk moments
+        "scene": repr(jax.tree.map(lambda x: np.asarray(x).tolist()
+                                   if eqx.is_array(x) else x, inputs.scene)),
+        "y0": {k: np.asarray(v).tolist() for k, v in inputs.y_single.items()},
+        "batched": {k: digest({k: np.asarray(v)})
+                    for k, v in {**inputs.y_batch, **inputs.p_batch}.items()},
+        "parameters": {k: np.asarray(v).tolist() for k, v in inputs.p_single.items()},
+        "vary": {name: repr(d) for name, d in inputs.vary.items()},
+        "key": np.asarray(jax.random.key_data(inputs.key)).tolist(),
+        "t0": float(inputs.t0), "t1": float(inputs.t1),
+        "ts": None if inputs.ts is None else np.asarray(inputs.ts).tolist(),
+        "solver": repr(inputs.solver), "rtol": float(inputs.rtol), "atol": float(inputs.atol),
+        "tolerance": "natural-scales",
+        "dt0": None if inputs.dt0 is None else float(inputs.dt0),
+        "max_steps": int(inputs.max_steps),
+        "mode": inputs.mode, "events": bool(inputs.events), "dtype": str(inputs.dtype),
+        # the results' last bits depend on how a chunk is split across devices
+        "devices": len(devices), "platform": devices[0].platform,
+        "observe": f"{getattr(observe, '__module__', '')}."
+                   f"{getattr(observe, '__qualname__', repr(observe))}",
+    }
+
+
+def _plan(inputs: _Inputs, chunk_size, devices, out) -> Plan:
+    """Chunks, devices and (for a run with chunk files) the fingerprint."""
+    devices = tuple(jax.local_devices() if devices is None else devices)
+    if not devices:
+        raise ParameterError("devices: empty list")
+    size = _chunk_size(inputs.n, len(devices), chunk_size)
+    if out is None and jax.process_count() > 1:
+        raise ParameterError(
+            f"out: a run shared by {jax.process_count()} processes (jax.distributed) needs an "
+            "output directory on a shared file system, where each process writes its chunks")
+    return Plan(chunk_size=size, chunks=math.ceil(inputs.n / size), devices=devices,
+                mode=inputs.mode,
+                fingerprint=None if out is None else _fingerprint(inputs, devices))
+
+
+class _Chunks:
+    """Launches the compiled chunks of a run and brings their results to the host."""
+
+    def __init__(self, inputs: _Inputs, plan: Plan, store: ChunkStore | None):
+        self.inputs, self.plan, self.store = inputs, plan, store
+        dtype = inputs.dtype
+        shared = _Shared(
+            scene=inputs.scene,
+            y0={k: jnp.asarray(v, dtype) for k, v in inputs.y_single.items()},
+            params={k: jnp.asarray(v) for k, v in inputs.p_single.items()},
+            key=inputs.key, t0=inputs.t0, t1=inputs.t1, ts=inputs.ts,
+            rtol=jnp.asarray(inputs.rtol, dtype), atol=jnp.asarray(inputs.atol, dtype),
+            dt0=inputs.dt0, dists=tuple(t.dist for t in inputs.targets),  # arguments too
+            n=jnp.asarray(inputs.n, jnp.uint32))
+        self.dyn, self.static = eqx.partition(shared, eqx.is_array)
+        self.config = _ChunkConfig(
+            targets=tuple(t._replace(dist=None) for t in inputs.targets), solver=inputs.solver,
+            mode=inputs.mode, max_steps=inputs.max_steps, observe=inputs.observe,
+            events=inputs.events, compact_rows=_batch_solve.COMPACT_ROWS)
+        self.compile_s = 0.0
+        self._dyn_on: list = []  # the shared inputs, on each device
+
+    def bounds(self, c: int) -> tuple[int, int]:
+        size = self.plan.chunk_size
+        return c * size, min((c + 1) * size, self.inputs.n)
+
+    def launch(self, c: int):
+        """Start chunk `c` (JAX dispatches asynchronously); returns its unfinished results."""
+        inputs, devices, size = self.inputs, self.plan.devices, self.plan.chunk_size
+        lo, hi = self.bounds(c)
+        idx = np.arange(lo, lo + size)
+        rows = np.minimum(idx, hi - 1)  # the last chunk is padded with copies of its last row
+        # NumPy rows, moved to the devices in one transfer (not a JAX array on the first device
+        # first, then resharded).
+        sharded = (idx.astype(np.uint32),
+                   {k: np.asarray(np.asarray(v)[rows], inputs.dtype)
+                    for k, v in inputs.y_batch.items()},
+                   {k: np.asarray(np.asarray(v)[rows]) for k, v in inputs.p_batch.items()})
+        (fn, sharding), seconds = _compiled_chunk(self.dyn, self.static, sharded, self.config,
+                                                  list(devices))
+        self.compile_s += seconds
+        if sharding == "per_device":
+            k = size // len(devices)
+            if not self._dyn_on:
+                self._dyn_on.extend(jax.device_put(self.dyn, device) for device in devices)
+            parts = [jax.device_put(jax.tree.map(lambda x: x[i * k:(i + 1) * k], sharded),
+                                    device) for i, device in enumerate(devices)]
+            return c, hi - lo, [f(dy, part) for f, dy, part in zip(fn, self._dyn_on, parts)]
+        sharded = jax.device_put(sharded, sharding if sharding is not None else devices[0])
+        return c, hi - lo, fn(self.dyn, sharded)
+
+    def finish(self, started) -> dict[str, np.ndarray]:
+        """Bring a started chunk's results to the host: what is kept (all values when the
+        chunks go to files), the chunk's moments, status, reasons and steps."""
+        c, m, result = started
+        keep = self.inputs.keep
+        if isinstance(result, list):  # one result per device, rows in device order
+            result = jax.tree.map(lambda *xs: np.concatenate([np.asarray(x) for x in xs]),
+                                  *result)
+        arrays = {f"values/{k}": np.asarray(v)[:m] for k, v in result["values"].items()
+                  if self.store is not None or keep is None or k in keep}
+        arrays.update({f"moments/{f}": np.asarray(v) for f, v in result["moments"].items()})
+        arrays.update({f"shape/{k}": np.asarray(v.shape[1:], np.int64)
+                       for k, v in result["values"].items()})
+        arrays.update({k: np.asarray(result[k])[:m] for k in ("status", "reason", "steps")})
+        if self.store is not None:
+            self.store.write(c, arrays)
+        return arrays
+
+
+def _run_chunks(chunks: _Chunks, plan: Plan, store, progress: bool):
+    """Every chunk's results, by chunk: read from the store where written, computed where this
+    process's share, waited for where another's. Also the number of trajectories computed
+    here, their run time (after compilation) and how many chunks were resumed."""
+    process, processes = jax.process_index(), jax.process_count()
+    results: dict[int, dict] = {}
+    todo = []
+    for c in range(plan.chunks):
+        arrays = store.read(c) if store is not None else None
+        if arrays is not None:
+            results[c] = arrays
+        elif c % processes == process:
+            todo.append(c)
+    resumed = len(results)
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=chunks.inputs.n, unit="traj", desc="ensemble")
+        bar.update(sum(hi - lo for lo, hi in map(chunks.bounds, results)))
+    # One chunk runs while the host finishes the one before it. The run time excludes the
+    # compilation, which happens (once) inside the first launch.
+    started, computed, clock = None, 0, time.perf_counter()
+    for c in todo + [None]:
+        nxt = chunks.launch(c) if c is not None else None
+        if started is not None:
+            results[started[0]] = chunks.finish(started)
+            computed += started[1]
+            if bar is not None:
+                bar.update(started[1])
+        started = nxt
+    run_s = max(time.perf_counter() - clock - chunks.compile_s, 0.0) if todo else 0.0
+    if bar is not None:
+        bar.close()
+    if len(results) < plan.chunks:
+        results.update(_wait_for_chunks(store, [c for c in range(plan.chunks)
+                                                if c not in results]))
+    return results, computed, run_s, resumed
+
+
+def _moments_by_name(results) -> dict[str, dict[str, np.ndarray]]:
+    """The chunks' moments merged (`results`: each chunk's arrays, in chunk order), split by
+    observed name: the columns are the observed values in the order of their names."""
+    moments = _Moments()
+    for arrays in results:
+        parts = [arrays[f"moments/{f}"] for f in _Moments.FIELDS]
+        for shard in range(parts[0].shape[0]):  # one row of moments per shard
+            moments.add(*(x[shard] for x in parts))
+    layout = sorted((k[len("shape/"):], tuple(int(d) for d in v))
+                    for k, v in results[0].items() if k.startswith("shape/"))
+    columns = moments.result()
+    by_name, col = {}, 0
+    for name, shape in layout:
+        size = int(np.prod(shape))
+        by_name[name] = {f: x[col: col + size].reshape(shape) for f, x in columns.items()}
+        col += size
+    return by_name
+
+
+def _kept_values(results, keep) -> dict[str, np.ndarray]:
+    """The kept observations of every chunk, joined in chunk order."""
+    kept: dict[str, list] = {}
+    for arrays in results:
+        for k, v in arrays.items():
+            name = k[len("values/"):]
+            if k.startswith("values/") and (keep is None or name in keep):
+                kept.setdefault(name, []).append(v)
+    return {k: np.concatenate(v) for k, v in kept.items()}
+
+
+def _reasons(results, chunk_size: int, messages) -> dict[int, str]:
+    """Why each trajectory with invalid inputs was invalid, by trajectory."""
+    reasons = {}
+    for c, arrays in enumerate(results):
+        for i in np.flatnonzero(arrays["status"] == STATUS.index("invalid_input")):
+            reasons[c * chunk_size + int(i)] = messages[int(arrays["reason"][i])]
+    return reasons
+
+
+def _varied(inputs: _Inputs) -> Callable[[], dict[str, np.ndarray]]:
+    """The values each trajectory ran with, recomputed on demand as the chunks drew them."""
+    given = {k: np.asarray(v) for k, v in {**inputs.y_batch, **inputs.p_batch}.items()}
+
+    def varied():
+        out = dict(given)
+        if inputs.targets:
+            draws = jax.jit(jax.vmap(lambda i: _drawn(inputs.targets, inputs.key, i,
+                                                      inputs.dtype)))(jnp.arange(inputs.n))
+            out.update({k: np.asarray(v) for k, v in draws.items()})
+        return out
+
+    return varied
 
 
 def ensemble(
@@ -532,242 +935,25 @@ def ensemble(
     An [`jaxdyn.Ensemble`][]. A trajectory that fails (an invalid sample, a step budget that runs
     out) is marked in `status` and leaves the others running.
     """
-    if not isinstance(scene, Scene):
-        raise ParameterError(f"scene={scene!r}: expected a jaxdyn.Scene")
-    if mode not in MODES:
-        raise ParameterError(f"mode={mode!r}: allowed are {list(MODES)}")
-    vary = dict(vary or {})
-    targets = _targets(scene, vary)
-    shapes = scene.state_shapes()
-    if not isinstance(y0, Mapping) or set(y0) != set(shapes):
-        raise ParameterError(
-            f"y0 has variables {sorted(y0) if isinstance(y0, Mapping) else type(y0).__name__}: "
-            f"this scene integrates {sorted(shapes)}")
-    y_single, y_batch, n_rows = _batched("y0", y0, shapes, None)
-    param_shapes = {k: tuple(np.shape(v)) for k, v in scene.parameters().items()}
-    parameters = dict(parameters or {})
-    unknown = sorted(set(parameters) - set(param_shapes))
-    if unknown:
-        raise ParameterError(f"parameters: unknown {unknown}: this scene has "
-                             f"{sorted(param_shapes)}")
-    p_single, p_batch, n_rows = _batched("parameters", parameters, param_shapes, n_rows)
-    nominal = scene.parameters()
-    for _, kind, base, _, _, _ in targets:  # varied parameters start from the scene's values
-        if kind == "parameter" and base not in p_single and base not in p_batch:
-            p_single[base] = nominal[base]
-    if n is None:
-        if n_rows is None:
-            raise ParameterError("n: give the number of trajectories (no input has a batch axis)")
-        n = n_rows
-    if not isinstance(n, int | np.integer) or n <= 0:
-        raise ParameterError(f"n={n!r}: must be a positive integer")
-    if n_rows is not None and n_rows != n:
-        raise ParameterError(f"n={n}: the batched inputs have {n_rows} rows")
-    n = int(n)
-    if isinstance(key, int | np.integer):
-        key = jax.random.key(int(key))
-    # Check the run's settings on one unbatched trajectory, as simulate would.
-    example = {k: (v[0] if k in y_batch else v) for k, v in y0.items()}
-    example = {k: jnp.asarray(v) for k, v in example.items()}
-    ex_y0, t0, t1, ts, solver, _, dt0 = _prepare_run(
-        scene, example, t0, t1, ts, solver, rtol, atol, None, dt0, max_steps)
-    dtype = t0.dtype
-    rtol, atol = (float(x) for x in check_tolerances(rtol, atol, dtype))
-    if mode != "vmap":
-        if events and scene.max_switches > 0:
-            raise ParameterError(
-                f"mode={mode!r}: this scene switches during a run (a {scene.body.kind}"
-                f"{''.join(f', {e.kind}' for e in scene.effects if e.max_switches)}); use "
-                "mode='vmap'")
-        tableau(solver)
-    if devices is None:
-        devices = jax.local_devices()
-    devices = list(devices)
-    if not devices:
-        raise ParameterError("devices: empty list")
-    d = len(devices)
-    if chunk_size is None:
-        # Equal chunks of at most DEFAULT_CHUNK, so that no chunk is mostly padding, with rows
-        # per device a multiple of 8: XLA's CPU loops vectorise whole only over such lengths
-        # (a chunk of 7143 rows per device ran at half the speed of one of 7144).
-        per_device = math.ceil(n / (math.ceil(n / DEFAULT_CHUNK) * d))
-        chunk_size = math.ceil(per_device / 8) * 8 * d
-    if not isinstance(chunk_size, int | np.integer) or chunk_size <= 0:
-        raise ParameterError(f"chunk_size={chunk_size!r}: must be a positive integer")
-    # No larger than the run needs (a chunk of 1e8 rows for n = 10 would only allocate padding).
-    chunk_size = int(math.ceil(min(int(chunk_size), n) / d) * d)
-    if isinstance(keep, bool):
-        keep_names = None if keep else ()
-    else:
-        keep_names = tuple(keep)
-    observe = final_state if observe is None else observe
-
-    # Everything that is the same for all chunks: arrays travel as arguments (so new values do
-    # not recompile), the rest is static.
-    base_y0 = {k: jnp.asarray(v, dtype) for k, v in y_single.items()}
-    base_params = {k: jnp.asarray(v) for k, v in p_single.items()}
-    rtol_a, atol_a = jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype)
-    dists = tuple(t[-1] for t in targets)  # their values are arguments too
-    tree = (scene, base_y0, base_params, key, t0, t1, ts, rtol_a, atol_a, dt0, dists,
-            jnp.asarray(n, jnp.uint32))
-    dyn, static = eqx.partition(tree, eqx.is_array)
-    config = (tuple(t[:-1] for t in targets), solver, mode, int(max_steps), observe,
-              bool(events), _batch_solve.COMPACT_ROWS)
-
-    n_chunks = math.ceil(n / chunk_size)
-    process, processes = jax.process_index(), jax.process_count()
-    store = None
-    if out is not None:
-        description = {
-            "format": 2,  # chunk files hold per-chunk moments
-            "scene": repr(jax.tree.map(lambda x: np.asarray(x).tolist()
-                                       if eqx.is_array(x) else x, scene)),
-            "y0": {k: np.asarray(v).tolist() for k, v in y_single.items()},
-            "batched": {k: digest({k: np.asarray(v)}) for k, v in {**y_batch, **p_batch}.items()},
-            "parameters": {k: np.asarray(v).tolist() for k, v in p_single.items()},
-            "vary": {name: repr(d) for name, d in vary.items()},
-            "key": np.asarray(jax.random.key_data(key)).tolist(),
-            "t0": float(t0), "t1": float(t1),
-            "ts": None if ts is None else np.asarray(ts).tolist(),
-            "solver": repr(solver), "rtol": float(rtol), "atol": float(atol),
-            "tolerance": "natural-scales",
-            "dt0": None if dt0 is None else float(dt0), "max_steps": int(max_steps),
-            "mode": mode, "events": bool(events), "dtype": str(dtype),
-            # the results' last bits depend on how a chunk is split across devices
-            "devices": d, "platform": devices[0].platform,
-            "observe": f"{getattr(observe, '__module__', '')}."
-                       f"{getattr(observe, '__qualname__', repr(observe))}",
-        }
-        store = ChunkStore(out, description, n, chunk_size)
-    elif processes > 1:
-        raise ParameterError(
-            f"out: a run shared by {processes} processes (jax.distributed) needs an output "
-            "directory on a shared file system, where each process writes its chunks")
-
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(total=n, unit="traj", desc="ensemble")
-    moments = _Moments()
-    kept: dict[str, list] = {}
-    status_parts, steps_parts = [], []
-    reasons: dict[int, str] = {}
-    compile_s, computed, resumed = 0.0, 0, 0
-    msgs = scene.violations(ex_y0)[1]
-
-    dyn_on: list = []  # the unbatched inputs, on each device
-
-    def launch(c):
-        """Start chunk `c` (JAX dispatches asynchronously); returns its unfinished results."""
-        nonlocal compile_s
-        lo, hi = c * chunk_size, min((c + 1) * chunk_size, n)
-        idx = np.arange(lo, lo + chunk_size)
-        rows = np.minimum(idx, hi - 1)  # the last chunk is padded with copies of its last row
-        # NumPy rows, moved to the devices in one transfer (not a JAX array on the first device
-        # first, then resharded).
-        sharded = (idx.astype(np.uint32),
-                   {k: np.asarray(np.asarray(v)[rows], dtype) for k, v in y_batch.items()},
-                   {k: np.asarray(np.asarray(v)[rows]) for k, v in p_batch.items()})
-        (fn, sharding), seconds = _compiled_chunk(dyn, static, sharded, config, devices)
-        compile_s += seconds
-        if sharding == "per_device":
-            k = chunk_size // d
-            if not dyn_on:
-                dyn_on.extend(jax.device_put(dyn, device) for device in devices)
-            parts = [jax.device_put(jax.tree.map(lambda x: x[i * k:(i + 1) * k], sharded),
-                                    device) for i, device in enumerate(devices)]
-            return c, hi - lo, [f(dy, part) for f, dy, part in zip(fn, dyn_on, parts)]
-        sharded = jax.device_put(sharded, sharding if sharding is not None else devices[0])
-        return c, hi - lo, fn(dyn, sharded)
-
-    def finish(started):
-        """Bring a started chunk's results to the host: what is kept (all values when the
-        chunks go to files), the chunk's moments, status, reasons and steps."""
-        c, m, result = started
-        if isinstance(result, list):  # one result per device, rows in device order
-            result = jax.tree.map(lambda *xs: np.concatenate([np.asarray(x) for x in xs]),
-                                  *result)
-        arrays = {f"values/{k}": np.asarray(v)[:m] for k, v in result["values"].items()
-                  if store is not None or keep_names is None or k in keep_names}
-        arrays.update({f"moments/{f}": np.asarray(v) for f, v in result["moments"].items()})
-        arrays.update({f"shape/{k}": np.asarray(v.shape[1:], np.int64)
-                       for k, v in result["values"].items()})
-        arrays.update({k: np.asarray(result[k])[:m] for k in ("status", "reason", "steps")})
-        if store is not None:
-            store.write(c, arrays)
-        return arrays
-
-    mine = [c for c in range(n_chunks) if c % processes == process]
-    results: dict[int, dict] = {}
-    todo = []
-    for c in range(n_chunks):
-        arrays = store.read(c) if store is not None else None
-        if arrays is not None:
-            resumed += 1
-            results[c] = arrays
-        elif c in mine:
-            todo.append(c)
-    if bar is not None:
-        bar.update(sum(min((c + 1) * chunk_size, n) - c * chunk_size for c in results))
-    # One chunk runs while the host finishes the one before it. The run time excludes the
-    # compilation, which happens (once) inside the first launch.
-    started, clock = None, time.perf_counter()
-    for c in todo + [None]:
-        nxt = launch(c) if c is not None else None
-        if started is not None:
-            results[started[0]] = finish(started)
-            computed += started[1]
-            if bar is not None:
-                bar.update(started[1])
-        started = nxt
-    run_s = max(time.perf_counter() - clock - compile_s, 0.0) if todo else 0.0
-    if bar is not None:
-        bar.close()
-    if len(results) < n_chunks:
-        results.update(_wait_for_chunks(store, [c for c in range(n_chunks) if c not in results]))
-
-    for c in range(n_chunks):  # merged in chunk order, however they were computed
-        arrays = results[c]
-        status = arrays["status"]
-        status_parts.append(status)
-        steps_parts.append(arrays["steps"])
-        lo = c * chunk_size
-        for i in np.flatnonzero(status == STATUS.index("invalid_input")):
-            reasons[lo + int(i)] = msgs[int(arrays["reason"][i])]
-        parts = [arrays[f"moments/{f}"] for f in _Moments.FIELDS]
-        for shard in range(parts[0].shape[0]):  # one row of moments per shard
-            moments.add(*(x[shard] for x in parts))
-        for k, v in arrays.items():
-            name = k[len("values/"):]
-            if k.startswith("values/") and (keep_names is None or name in keep_names):
-                kept.setdefault(name, []).append(v)
-    values = {k: np.concatenate(v) for k, v in kept.items()}
-    status = np.concatenate(status_parts).astype(np.int8)
-    # The moments' columns are the observed values in the order of their names.
-    layout = sorted((k[len("shape/"):], tuple(int(d) for d in v))
-                    for k, v in results[0].items() if k.startswith("shape/"))
-    columns = moments.result()
-    by_name, col = {}, 0
-    for name, shape in layout:
-        size = int(np.prod(shape))
-        by_name[name] = {f: x[col: col + size].reshape(shape) for f, x in columns.items()}
-        col += size
-    timing = {"compile_s": round(compile_s, 4), "run_s": round(run_s, 4),
+    inputs = _resolve(scene, y0, t1, n=n, key=key, vary=vary, parameters=parameters, t0=t0,
+                      ts=ts, observe=observe, keep=keep, solver=solver, rtol=rtol, atol=atol,
+                      dt0=dt0, max_steps=max_steps, mode=mode, events=events)
+    plan = _plan(inputs, chunk_size, devices, out)
+    store = None if out is None else ChunkStore(out, plan.fingerprint, inputs.n,
+                                                plan.chunk_size)
+    chunks = _Chunks(inputs, plan, store)
+    results, computed, run_s, resumed = _run_chunks(chunks, plan, store, progress)
+    in_order = [results[c] for c in range(plan.chunks)]
+    timing = {"compile_s": round(chunks.compile_s, 4), "run_s": round(run_s, 4),
               "trajectories_per_s": (computed / run_s) if run_s > 0 else None}
-    given = {k: np.asarray(v) for k, v in {**y_batch, **p_batch}.items()}
-
-    def varied():  # recomputed on demand, as the chunks drew them
-        out = dict(given)
-        if targets:
-            draws = jax.jit(jax.vmap(lambda i: _drawn(targets, key, i, dtype)))(jnp.arange(n))
-            out.update({k: np.asarray(v) for k, v in draws.items()})
-        return out
-
     return Ensemble(
-        drawn=varied, n=n, status=status, values=values, moments=by_name,
-        steps=np.concatenate(steps_parts), reasons=reasons, mode=mode, chunk_size=chunk_size,
-        devices=len(devices), timing=timing, resumed_chunks=resumed,
+        drawn=_varied(inputs), n=inputs.n,
+        status=np.concatenate([r["status"] for r in in_order]).astype(np.int8),
+        values=_kept_values(in_order, inputs.keep), moments=_moments_by_name(in_order),
+        steps=np.concatenate([r["steps"] for r in in_order]),
+        reasons=_reasons(in_order, plan.chunk_size, inputs.messages), mode=inputs.mode,
+        chunk_size=plan.chunk_size, devices=len(plan.devices), timing=timing,
+        resumed_chunks=resumed,
         recomputed_chunks=tuple(store.recomputed) if store is not None else (),
     )
 

@@ -18,7 +18,6 @@ from jaxtyping import Array, ArrayLike, Float
 
 from ._body import AbstractBody
 from ._custom_types import Scalar, State
-from ._fastmath import sincos
 from ._inputs import Input
 from ._validation import Check, ParameterError, as_float_array, positive_check
 
@@ -155,7 +154,7 @@ class FallingRod(AbstractBody):
 
     def angular_acceleration(self, theta, theta_dot):
         """`theta_ddot` from the equation of motion."""
-        s, c = sincos(theta)  # vectorised: this is the vector field's cost
+        s, c = jnp.sin(theta), jnp.cos(theta)
         L, g = self.length, self.g
         return 3 * s * (2 * g - L * theta_dot**2 * c) / (L * (1 + 3 * s**2))
 

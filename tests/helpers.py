@@ -1,5 +1,7 @@
 """Tolerances and comparison helpers, in one place for the whole test suite."""
 
+import contextlib
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -44,3 +46,54 @@ def central_difference(f, x, eps=1e-6):
 # well-conditioned result may lie from an exact reference at the defaults (issue 17).
 DEFAULT_RTOL = 1e-8
 WITHIN_RTOL = 10
+
+
+# -- compiled programs -----------------------------------------------------------------------
+
+_LOWERED = "/jax/core/compile/jaxpr_to_mlir_module_duration"
+
+
+@contextlib.contextmanager
+def new_programs():
+    """Count the programs JAX lowers inside the block (one per new compiled program, whether
+    XLA then compiles it or a persistent cache holds it): yields a list that grows by one per
+    program."""
+    seen = []
+
+    def listener(name, *args, **kwargs):
+        if name == _LOWERED:
+            seen.append(name)
+
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        yield seen
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
+
+
+def compiled_flops(fn, *args) -> float:
+    """XLA's count of floating-point operations in the compiled `fn(*args)`."""
+    cost = jax.jit(fn).lower(*args).compile().cost_analysis()
+    cost = cost[0] if isinstance(cost, list | tuple) else cost
+    return float(cost["flops"])
+
+
+# Two compiled programs that do the same arithmetic cost the same to within this fraction
+# (XLA's fusion and counting of bookkeeping operations may differ by a little from one version
+# to the next; an extra term in a vector field costs several times more).
+COST_MARGIN = 0.02
+
+
+# -- independent references ------------------------------------------------------------------
+
+def scipy_euler(inertia, omega0, t1, ts=None, *, rtol=1e-13, atol=1e-14):
+    """Euler's equations integrated by scipy's DOP853 (an independent reference): `inertia` is
+    the principal moments or a full inertia tensor. The rates at `ts` (default: the solver's
+    own steps), one row each."""
+    from scipy.integrate import solve_ivp
+
+    tensor = np.diag(inertia) if np.ndim(inertia) == 1 else np.asarray(inertia)
+    inv = np.linalg.inv(tensor)
+    sol = solve_ivp(lambda t, w: inv @ np.cross(tensor @ w, w), (0, t1), omega0,
+                    t_eval=ts, rtol=rtol, atol=atol, method="DOP853")
+    return sol.y.T

@@ -1,5 +1,5 @@
-"""`sincos` (the vectorised sine and cosine of the rod's vector field) against NumPy, and the
-batched engine's vectorised step-size root against `x ** (-1 / p)`."""
+"""`sincos` (the batch engine's vectorised sine and cosine) against NumPy, the engine's rewrite
+of vector fields with it, and the engine's vectorised step-size root against `x ** (-1 / p)`."""
 
 import jax
 import jax.numpy as jnp
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from jaxdyn._batch_solve import _inv_root
-from jaxdyn._fastmath import sincos
+from jaxdyn._fastmath import sincos, with_vectorised_trig
 
 
 def _ulps(got, ref):
@@ -61,3 +61,32 @@ def test_inverse_root_of_the_step_size_controller(p, dtype):
     rel = np.max(np.abs(np.asarray(got, np.float64) / want - 1))
     # A step-size factor needs a few digits (it is multiplied by a safety factor of 0.9)
     assert rel < 1e-4
+
+
+def test_the_engine_rewrite_computes_every_sine_and_cosine_by_sincos():
+    """`with_vectorised_trig` (the batch engine's rewrite of a vector field): the same values,
+    and no call of the C library's sine or cosine left, nested calls included."""
+    @jax.jit
+    def inner(x):
+        return jnp.cos(2 * x) * x
+
+    def field(x, y):
+        return {"a": jnp.sin(x) * inner(y), "b": jnp.tan(x) + jnp.cos(y) ** 2}
+
+    x = jnp.linspace(-3.0, 3.0, 101)
+    y = jnp.linspace(0.5, 7.0, 101)
+    rewritten = with_vectorised_trig(field)
+    got, want = rewritten(x, y), field(x, y)
+    for k in want:
+        np.testing.assert_allclose(np.asarray(got[k]), np.asarray(want[k]), rtol=1e-14,
+                                   atol=1e-15)
+    def primitives(jaxpr):
+        for eqn in jaxpr.eqns:
+            yield eqn.primitive.name
+            for v in eqn.params.values():
+                if hasattr(v, "jaxpr"):
+                    yield from primitives(v.jaxpr)
+
+    assert {"sin", "cos"} <= set(primitives(jax.make_jaxpr(field)(x, y).jaxpr))  # control
+    used = set(primitives(jax.make_jaxpr(rewritten)(x, y).jaxpr))
+    assert not {"sin", "cos"} & used and "tan" in used  # (tan is not rewritten)

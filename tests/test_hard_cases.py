@@ -13,7 +13,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from scipy.integrate import quad, solve_ivp
+from helpers import scipy_euler
+from scipy.integrate import quad
 from scipy.optimize import brentq
 
 import jaxdyn as jd
@@ -24,13 +25,6 @@ ROD = jd.FallingRod(length=1.0, mass=1.0, g=9.81)
 ROD_SCENE = jd.Scene(ROD)
 INERTIA = np.array([1.0, 2.0, 3.0])
 FREE = jd.Scene(jd.RigidBody(INERTIA))
-
-
-def _scipy_euler(inertia, omega0, t1, ts=None):
-    inertia = np.asarray(inertia)
-    sol = solve_ivp(lambda t, w: np.cross(inertia * w, w) / inertia, (0, t1), omega0,
-                    t_eval=ts, rtol=1e-13, atol=1e-15, method="DOP853")
-    return sol.y.T
 
 
 # -- 1. the rod released from a tiny angle -------------------------------------------------------
@@ -174,7 +168,8 @@ def case_separatrix():
     on = jnp.array([w1, 0.3, w3])
     exact = np.asarray(jd.torque_free_omega(INERTIA, on, ts))
     out = {"m1": float(jd.elliptic_parameter(INERTIA, on)[1]),
-           "limit_vs_scipy": float(np.max(np.abs(exact - _scipy_euler(INERTIA, on, 20, ts))))}
+           "limit_vs_scipy": float(np.max(np.abs(
+               exact - scipy_euler(INERTIA, on, 20, ts, atol=1e-15))))}
     grad = jax.jacfwd(lambda w: jd.torque_free_omega(INERTIA, w, 10.0))
     gaps, finite = [], True
     for delta in (1e-4, 1e-8, 1e-12, -1e-12, -1e-8, -1e-4):
@@ -205,7 +200,8 @@ def case_symmetric():
     for inertia in ((1.0, 1.0, 2.0), (1.0, 2.0, 2.0), (2.0, 2.0, 2.0)):
         ts = np.linspace(0, 10, 11)
         exact = jd.torque_free_omega(jnp.asarray(inertia), jnp.asarray(omega0), ts)
-        out[str(inertia)] = float(np.max(np.abs(exact - _scipy_euler(inertia, omega0, 10, ts))))
+        reference = scipy_euler(inertia, omega0, 10, ts, atol=1e-15)
+        out[str(inertia)] = float(np.max(np.abs(exact - reference)))
     return out
 
 
@@ -226,7 +222,7 @@ def case_extreme_inertia():
         scene = jd.Scene(jd.RigidBody(inertia))
         omega0 = jnp.array([0.2, 0.1, 0.05])
         traj = jd.simulate(scene, scene.state(omega=omega0), 10.0, rtol=1e-12, atol=1e-14)
-        exact = _scipy_euler(inertia, np.asarray(omega0), 10.0)[-1]
+        exact = scipy_euler(inertia, np.asarray(omega0), 10.0, atol=1e-15)[-1]
         out[name] = {"error_vs_scipy": float(np.max(np.abs(traj.y_final["omega"] - exact))),
                      "closed_form_vs_scipy": float(np.max(np.abs(
                          jd.torque_free_omega(jnp.asarray(inertia), omega0, 10.0) - exact)))}
@@ -439,7 +435,7 @@ def case_defaults():
         scene = jd.Scene(jd.RigidBody(inertia))
         omega0 = jnp.array([0.2, 0.1, 0.05])
         traj = jd.simulate(scene, scene.state(omega=omega0), 10.0)
-        exact = _scipy_euler(inertia, np.asarray(omega0), 10.0)[-1]
+        exact = scipy_euler(inertia, np.asarray(omega0), 10.0, atol=1e-15)[-1]
         out[name] = float(np.max(np.abs(traj.y_final["omega"] - exact)) / 0.2)
     f32 = jnp.float32
     rod32 = jd.FallingRod(length=f32(1.0), mass=f32(1.0), g=f32(9.81))

@@ -6,8 +6,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import FINITE_DIFF, INTEGRATION, ROUNDOFF, central_difference, tol
-from scipy.integrate import solve_ivp
+from helpers import (
+    FINITE_DIFF,
+    INTEGRATION,
+    ROUNDOFF,
+    central_difference,
+    new_programs,
+    scipy_euler,
+    tol,
+)
 from scipy.spatial.transform import Rotation
 
 import jaxdyn as jd
@@ -17,15 +24,6 @@ TIGHT = dict(rtol=1e-12, atol=1e-13)
 # error made near a saddle grows like exp(sigma t) until the next one, so at rtol = 1e-12 the
 # rates agree only to a few 1e-9.
 FLIPS = 1e-8
-
-
-def _scipy_euler(inertia, omega0, ts):
-    """Euler's equations integrated by scipy's DOP853: an independent reference."""
-    tensor = np.diag(inertia) if np.ndim(inertia) == 1 else np.asarray(inertia)
-    inv = np.linalg.inv(tensor)
-    sol = solve_ivp(lambda t, w: inv @ np.cross(tensor @ w, w), (0, ts[-1]), omega0,
-                    t_eval=ts, rtol=1e-13, atol=1e-14, method="DOP853")
-    return sol.y.T
 
 
 def _random_bodies(n, seed):
@@ -42,7 +40,7 @@ def _random_bodies(n, seed):
 def test_exact_solution_matches_scipy_integration(inertia, omega0):
     ts = np.linspace(0, 20, 201)
     exact = jd.torque_free_omega(jnp.asarray(inertia), jnp.asarray(omega0), jnp.asarray(ts))
-    assert np.allclose(exact, _scipy_euler(inertia, omega0, ts), atol=1e-10)
+    assert np.allclose(exact, scipy_euler(inertia, omega0, ts[-1], ts), atol=1e-10)
 
 
 @pytest.mark.parametrize("side", [+1, -1, 0])
@@ -55,7 +53,7 @@ def test_exact_solution_both_sides_of_separatrix_and_on_it(side):
     assert np.sign(jd.separatrix_condition(inertia, omega0)) == side or side == 0
     ts = np.linspace(0, 15, 151)
     exact = jd.torque_free_omega(jnp.asarray(inertia), jnp.asarray(omega0), jnp.asarray(ts))
-    assert np.allclose(exact, _scipy_euler(inertia, omega0, ts), atol=1e-9)
+    assert np.allclose(exact, scipy_euler(inertia, omega0, ts[-1], ts), atol=1e-9)
     m, m1 = jd.elliptic_parameter(inertia, omega0)
     assert np.isclose(m + m1, 1.0, rtol=tol(ROUNDOFF))
     if side == 0:
@@ -118,8 +116,8 @@ def test_full_tensor_equals_rotated_principal_body():
     ts = np.linspace(0, 10, 21)
     scene = jd.Scene(body)
     traj = jd.simulate(scene, scene.state(omega=omega0), 10.0, ts=jnp.asarray(ts), **TIGHT)
-    assert np.allclose(traj.omega, _scipy_euler(tensor, omega0, ts), atol=1e-9)
-    assert np.allclose(body.exact_omega(omega0, ts), _scipy_euler(tensor, omega0, ts),
+    assert np.allclose(traj.omega, scipy_euler(tensor, omega0, ts[-1], ts), atol=1e-9)
+    assert np.allclose(body.exact_omega(omega0, ts), scipy_euler(tensor, omega0, ts[-1], ts),
                        atol=1e-10)
 
 
@@ -234,17 +232,15 @@ def test_changing_a_parameter_does_not_recompile():
     scene = jd.Scene(jd.RigidBody([1.0, 2.0, 3.0]))
     y0 = scene.state(omega=[0.1, 1.0, 0.1])
     jd.simulate(scene, y0, 3.0)
-    compiled = []
-
-    def count(*args, **kwargs):
-        compiled.append(1)
-
-    jax.monitoring.register_event_duration_secs_listener(
-        lambda name, *a, **k: count() if "backend_compile" in name else None
-    )
-    for inertia in ([1.1, 2.0, 3.0], [1.0, 2.5, 3.1]):
-        jd.simulate(scene.replace(inertia=inertia), y0, 4.0)
+    with new_programs() as compiled:
+        for inertia in ([1.1, 2.0, 3.0], [1.0, 2.5, 3.1]):
+            jd.simulate(scene.replace(inertia=inertia), y0, 4.0)
     assert not compiled
+    # Positive control: a change of structure (here the step budget, a static setting no other
+    # test uses) is seen to compile a new program.
+    with new_programs() as compiled:
+        jd.simulate(scene, y0, 4.0, max_steps=54_321)
+    assert compiled
 
 
 def test_solver_and_controller_choices():
