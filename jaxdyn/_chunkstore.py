@@ -93,6 +93,27 @@ class ChunkStore:
         self._remove_dead_temporaries()
         self.recomputed: list[int] = []
 
+    @classmethod
+    def existing(cls, directory: str | os.PathLike) -> "ChunkStore":
+        """The store of a run already in `directory` (its `run.json`), opened to read its
+        chunks: nothing is written or removed."""
+        path = Path(directory) / "run.json"
+        if not path.is_file():
+            raise ParameterError(f"{str(directory)!r} holds no ensemble run (no run.json): "
+                                 "give the directory of jaxdyn montecarlo --out or "
+                                 "jd.ensemble(..., out=)")
+        try:
+            manifest = json.loads(path.read_text())
+            n, chunk_size = int(manifest["n"]), int(manifest["chunk_size"])
+            fingerprint = str(manifest["fingerprint"])
+        except (OSError, ValueError, KeyError, TypeError):
+            raise ParameterError(f"{path}: unreadable run description") from None
+        store = cls.__new__(cls)
+        store.directory, store.fingerprint = Path(directory), fingerprint
+        store.n, store.chunk_size, store.settings = n, chunk_size, manifest.get("settings", {})
+        store.recomputed = []
+        return store
+
     def _remove_dead_temporaries(self) -> None:
         """Temporary files of writes that died: only those of a process of this host that no
         longer runs (another process, here or on another host, may be writing into this

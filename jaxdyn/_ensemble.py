@@ -80,6 +80,14 @@ class Ensemble:
         `fold_in(key, i)`, so they are the very values it ran with)."""
         return {} if self.drawn is None else self.drawn()
 
+    @staticmethod
+    def read(directory: str | os.PathLike) -> "Ensemble":
+        """The ensemble of a run written to `directory` by `jaxdyn montecarlo --out DIR` or
+        `jd.ensemble(..., out=DIR)`, every chunk file checked; `varied()`, `to_dataframe()`
+        and `to_xarray()` work as on the run itself. A run that has not finished is refused,
+        naming its missing chunks."""
+        return read_ensemble(directory)
+
     def to_dataframe(self):
         """A pandas `DataFrame`, one row per trajectory: `status` (by name), `steps`, the
         varied values, then the kept observations (array values split into columns
@@ -723,6 +731,7 @@ class _Chunks:
             events=inputs.events, compact_rows=_batch_solve.COMPACT_ROWS)
         self.compile_s = 0.0
         self._dyn_on: list = []  # the shared inputs, on each device
+        self._varied: dict[str, np.ndarray] | None = None  # for the chunk files
 
     def bounds(self, c: int) -> tuple[int, int]:
         size = self.plan.chunk_size
@@ -768,6 +777,13 @@ class _Chunks:
                        for k, v in result["values"].items()})
         arrays.update({k: np.asarray(result[k])[:m] for k in ("status", "reason", "steps")})
         if self.store is not None:
+            # What a reader of the files needs beyond the results: the values each trajectory
+            # ran with, and the texts of the invalid-input reasons.
+            lo, hi = self.bounds(c)
+            if self._varied is None:
+                self._varied = _varied(self.inputs)()
+            arrays.update({f"varied/{k}": v[lo:hi] for k, v in self._varied.items()})
+            arrays["messages"] = np.array(list(self.inputs.messages), dtype=np.str_)
             self.store.write(c, arrays)
         return arrays
 
@@ -955,6 +971,49 @@ def ensemble(
         chunk_size=plan.chunk_size, devices=len(plan.devices), timing=timing,
         resumed_chunks=resumed,
         recomputed_chunks=tuple(store.recomputed) if store is not None else (),
+    )
+
+
+class _UnknownReasons:
+    """Chunk files written before they held the reasons' texts."""
+
+    def __getitem__(self, code: int) -> str:
+        return f"invalid input (reason {code}; its text is not in the chunk files)"
+
+
+def read_ensemble(directory: str | os.PathLike) -> "Ensemble":
+    """The [`jaxdyn.Ensemble`][] of a run written to `directory` (`jaxdyn montecarlo --out
+    DIR` or `jd.ensemble(..., out=DIR)`): its statuses, steps, kept observations, statistics
+    and, for chunks written by this version, the values each trajectory ran with
+    (`varied()`), so that `to_dataframe()` and `to_xarray()` work as on the run itself. Every
+    chunk file is checked (fingerprint, checksum); a run that has not finished is refused,
+    naming the missing chunks."""
+    store = ChunkStore.existing(directory)
+    chunks = -(-store.n // store.chunk_size)
+    results, missing = [], []
+    for c in range(chunks):
+        arrays = store.read(c)
+        if arrays is None:
+            missing.append(c)
+        results.append(arrays)
+    if missing:
+        raise ParameterError(
+            f"{str(directory)!r}: chunk(s) {missing[:5]} of {chunks} are missing or failed "
+            "their checks: the run has not finished (run the same command again to resume)")
+    messages = list(results[0].get("messages", []))
+    varied = {}
+    if all(any(k.startswith("varied/") for k in r) for r in results):
+        names = [k for k in results[0] if k.startswith("varied/")]
+        varied = {k[len("varied/"):]: np.concatenate([r[k] for r in results]) for k in names}
+    settings = store.settings if isinstance(store.settings, dict) else {}
+    return Ensemble(
+        drawn=lambda: dict(varied), n=store.n,
+        status=np.concatenate([r["status"] for r in results]).astype(np.int8),
+        values=_kept_values(results, None), moments=_moments_by_name(results),
+        steps=np.concatenate([r["steps"] for r in results]),
+        reasons=_reasons(results, store.chunk_size, messages or _UnknownReasons()),
+        mode=str(settings.get("mode", "unknown")), chunk_size=store.chunk_size,
+        devices=int(settings.get("devices", 1)), timing={},
     )
 
 

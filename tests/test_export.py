@@ -91,3 +91,37 @@ def test_commands_write_csv_and_netcdf(tmp_path, capsys):
         main(["run", "--export", str(tmp_path / "run.txt")])
     assert err.value.code == 2
     capsys.readouterr()
+
+
+def test_a_run_written_to_a_directory_reads_back_as_the_ensemble(tmp_path, capsys):
+    """`jd.Ensemble.read(DIR)` on the chunk files of a run (three chunks here): the same
+    statuses, steps, kept values, statistics and varied values as the run returned, so its
+    data frame is the same; the command's `--out` directory reads the same way. A directory
+    whose run has not finished is refused, naming the missing chunk."""
+    scene = jd.Scene(jd.RigidBody(INERTIA))
+    y0 = scene.state(omega=[1e-3, 1.0, 1e-3])
+    out = tmp_path / "run"
+    res = jd.ensemble(scene, y0, 5.0, n=40, key=3, chunk_size=16, out=out,
+                      vary={"inertia": jd.LogNormal(INERTIA, 0.01)})
+    back = jd.Ensemble.read(out)
+    assert back.n == res.n and np.array_equal(back.status, res.status)
+    assert np.array_equal(back.steps, res.steps)
+    for k, v in res.values.items():
+        assert np.array_equal(back.values[k], v)
+    for k, stats in res.statistics.items():
+        for f in ("count", "mean", "std", "min", "max"):
+            assert np.allclose(back.statistics[k][f], stats[f], rtol=1e-14, atol=0)
+    pd.testing.assert_frame_equal(back.to_dataframe(), res.to_dataframe())
+    (out / "chunk-000001.npz").unlink()
+    with pytest.raises(jd.ParameterError, match=r"chunk\(s\) \[1\] of 3"):
+        jd.Ensemble.read(out)
+    with pytest.raises(jd.ParameterError, match="no run.json"):
+        jd.Ensemble.read(tmp_path)
+
+    from test_cli import run_cli
+
+    status, _, err = run_cli(capsys, "montecarlo", "intermediate-axis", "--n", "24",
+                             "--out", str(tmp_path / "cli"), "--vary", "omega[0]=normal(0,1e-3)")
+    assert status == 0, err
+    frame = jd.Ensemble.read(tmp_path / "cli").to_dataframe()
+    assert len(frame) == 24 and "varied.omega[0]" in frame.columns
