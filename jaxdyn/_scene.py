@@ -138,11 +138,7 @@ class Scene(eqx.Module):
         return out
 
     def _own(self, y: State) -> tuple:
-        pairs = []
-        for label, e in zip(self.labels, self.effects):
-            prefix = label + "."
-            pairs.append((e, {k[len(prefix):]: v for k, v in y.items() if k.startswith(prefix)}))
-        return tuple(pairs)
+        return tuple((e, _own_state(y, label)) for label, e in zip(self.labels, self.effects))
 
     # -- dynamics -------------------------------------------------------------------------------
 
@@ -371,6 +367,12 @@ class Scene(eqx.Module):
         return out
 
 
+def _own_state(y: State, label: str) -> State:
+    """The state variables of the effect labelled `label`, by their own names."""
+    prefix = label + "."
+    return {k[len(prefix):]: v for k, v in y.items() if k.startswith(prefix)}
+
+
 class _OwnEvent(eqx.Module):
     """An effect's event as a function of `(t, y)`: the effect's own state picked out of `y`."""
 
@@ -378,5 +380,4 @@ class _OwnEvent(eqx.Module):
     label: str = eqx.field(static=True)
 
     def __call__(self, t, y):
-        prefix = self.label + "."
-        return self.fn(t, y, {k[len(prefix):]: v for k, v in y.items() if k.startswith(prefix)})
+        return self.fn(t, y, _own_state(y, self.label))

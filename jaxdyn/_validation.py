@@ -83,6 +83,10 @@ def finite_check(field: str, x) -> Check:
     return (field, x, ~jnp.isfinite(x), "must be finite")
 
 
+def nonnegative_check(field: str, x) -> Check:
+    return (field, x, ~(jnp.isfinite(x) & (x >= 0)), "must be finite and non-negative")
+
+
 def positive_check(field: str, x) -> Check:
     return (field, x, ~((x > 0) & jnp.isfinite(x)), "must be positive and finite")
 

@@ -7,7 +7,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .._effect import AbstractEffect
 from .._inputs import Input
-from .._validation import Check, ParameterError, as_float_array
+from .._validation import Check, ParameterError, as_float_array, nonnegative_check
 
 
 class LinearDamping(AbstractEffect):
@@ -44,8 +44,7 @@ class LinearDamping(AbstractEffect):
 
     def checks(self) -> list[Check]:
         c = self.coefficients
-        return [("linear-damping.coefficients", c, ~(jnp.isfinite(c) & (c >= 0)),
-                 "must be non-negative and finite")]
+        return [nonnegative_check("linear-damping.coefficients", c)]
 
     def initial_state(self, body_state, **values):
         if values:

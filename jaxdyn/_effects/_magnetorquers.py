@@ -37,7 +37,14 @@ from .._effect import AbstractEffect
 from .._inputs import Input
 from .._orbit import EARTH_RADIUS, dipole_field, orbit_direction, orbit_rate
 from .._rotations import quat_conjugate, quat_rotate, safe_norm
-from .._validation import Check, ParameterError, as_float_array, finite_check, positive_check
+from .._validation import (
+    Check,
+    ParameterError,
+    as_float_array,
+    finite_check,
+    nonnegative_check,
+    positive_check,
+)
 
 LAWS = ("bdot", "dump", "none")
 
@@ -132,12 +139,8 @@ class MagneticTorquers(AbstractEffect):
     def checks(self) -> list[Check]:
         checks = [positive_check("magnetorquers.altitude", self.altitude),
                   finite_check("magnetorquers.residual_dipole", self.residual_dipole),
-                  ("magnetorquers.gain", self.gain,
-                   ~(jnp.isfinite(self.gain) & (self.gain >= 0)),
-                   "must be finite and non-negative"),
-                  ("magnetorquers.dump_gain", self.dump_gain,
-                   ~(jnp.isfinite(self.dump_gain) & (self.dump_gain >= 0)),
-                   "must be finite and non-negative")]
+                  nonnegative_check("magnetorquers.gain", self.gain),
+                  nonnegative_check("magnetorquers.dump_gain", self.dump_gain)]
         for name in ("inclination", "node", "phase", "earth_angle"):
             checks.append(finite_check(f"magnetorquers.{name}", getattr(self, name)))
         if self.max_dipole is not None:

@@ -42,16 +42,13 @@ from .._validation import (
     as_per_row,
     as_rows,
     finite_check,
+    nonnegative_check,
     nonzero_unit,
     positive_check,
 )
 
 LAWS = ("rate-damping", "none")
 _IDLE = 1e6  # the pulse-end event of a controller with no thruster firing: never reached
-
-
-def _nonnegative_check(name, value) -> Check:
-    return (name, value, ~(jnp.isfinite(value) & (value >= 0)), "must be finite and non-negative")
 
 
 class Thrusters(AbstractEffect):
@@ -150,9 +147,9 @@ class Thrusters(AbstractEffect):
                 positive_check("thrusters.thrust", self.thrust),
                 positive_check("thrusters.exhaust_velocity", self.exhaust_velocity),
                 positive_check("thrusters.period", self.period),
-                _nonnegative_check("thrusters.min_impulse", self.min_impulse),
-                _nonnegative_check("thrusters.gain", self.gain),
-                _nonnegative_check("thrusters.deadband", self.deadband)]
+                nonnegative_check("thrusters.min_impulse", self.min_impulse),
+                nonnegative_check("thrusters.gain", self.gain),
+                nonnegative_check("thrusters.deadband", self.deadband)]
 
     @property
     def size(self) -> int:

@@ -30,6 +30,7 @@ from .._validation import (
     as_per_row,
     as_rows,
     finite_check,
+    nonnegative_check,
     nonzero_unit,
     positive_check,
 )
@@ -166,9 +167,7 @@ class Wheels(AbstractEffect):
             if value is not None:
                 checks.append(positive_check(f"wheels.{name}", value))
         if self.damping is not None:
-            checks.append(("wheels.damping", self.damping,
-                           ~(jnp.isfinite(self.damping) & (self.damping >= 0)),
-                           "must be non-negative and finite"))
+            checks.append(nonnegative_check("wheels.damping", self.damping))
         if self.motor is not None and not callable(self.motor):
             checks.append(finite_check("wheels.motor", self.motor))
         return checks
@@ -355,8 +354,7 @@ def _gain_checks(gains: dict) -> None:
     exhausted step budget; a negative one pumps energy in)."""
     from .._validation import raise_if_violated
 
-    raise_if_violated([(name, g, ~(jnp.isfinite(g) & (g >= 0)),
-                        "must be finite and non-negative") for name, g in gains.items()])
+    raise_if_violated([nonnegative_check(name, g) for name, g in gains.items()])
 
 
 def _allocate(wheels: Wheels, body_torque) -> Array:

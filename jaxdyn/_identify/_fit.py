@@ -82,8 +82,9 @@ class _Problem(eqx.Module):
     def values(self, u: Float[Array, " n"]) -> dict[str, Array]:
         return {name: m(part) for name, m, part in zip(self.names, self.maps, self.split(u))}
 
-    def scene_and_state(self, u: Float[Array, " n"]) -> tuple[Scene, State]:
-        values = self.values(u)
+    def scene_and_state(self, u: Float[Array, " n"], values=None) -> tuple[Scene, State]:
+        """The scene and initial state at `u` (`values`: `self.values(u)`, if already made)."""
+        values = self.values(u) if values is None else values
         params = {n: v for n, v, s in zip(self.names, values.values(), self.is_state)
                   if not s and not n.startswith(_BIAS)}
         y0 = dict(self.y0)
@@ -91,8 +92,9 @@ class _Problem(eqx.Module):
         scene = self.scene.replace(params) if params else self.scene
         return scene, y0
 
-    def predict(self, u: Float[Array, " n"], ts: Float[Array, " N"]) -> dict[str, Array]:
-        scene, y0 = self.scene_and_state(u)
+    def predict(self, u: Float[Array, " n"], ts: Float[Array, " N"],
+                values=None) -> dict[str, Array]:
+        scene, y0 = self.scene_and_state(u, values)
         traj = simulate_unchecked(
             scene, y0, ts[-1], t0=ts[0], ts=ts,
             # A controller built here, so that the tolerances are arrays (no recompilation).
@@ -109,8 +111,8 @@ class _Problem(eqx.Module):
     def residuals(self, u, ts, data, weights) -> Float[Array, " m"]:
         """Weighted residuals, in the dtype of `u` (the optimiser's), whatever the dtype of the
         simulation (the data's)."""
-        pred = self.predict(u, ts)
-        values = self.values(u)
+        values = self.values(u)  # once: the scene, the initial state and the sensor biases
+        pred = self.predict(u, ts, values)
         parts = []
         for name, kind, sigma in zip(self.outputs, self.kinds, self.sigma):
             p = pred[name]
