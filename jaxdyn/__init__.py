@@ -95,7 +95,7 @@ _LAZY = {  # public name -> (module, name in it)
     "critical_rotor_momenta": ("._separatrix", "critical_rotor_momenta"),
     "find_equilibria": ("._separatrix", "find_equilibria"),
     "trace_separatrices": ("._separatrix", "trace_separatrices"),
-    "Trajectory": ("._simulate", "Trajectory"),
+    "Trajectory": ("._solution", "Trajectory"),
     "simulate": ("._simulate", "simulate"),
     "RK4": ("._solvers", "RK4"),
     "RotationSplitting": ("._solvers", "RotationSplitting"),
@@ -219,6 +219,7 @@ if TYPE_CHECKING:  # the same names, for type checkers and editors
         find_equilibria as find_equilibria,
         trace_separatrices as trace_separatrices,
     )
-    from ._simulate import Trajectory as Trajectory, simulate as simulate
+    from ._simulate import simulate as simulate
+    from ._solution import Trajectory as Trajectory
     from ._solvers import RK4 as RK4, RotationSplitting as RotationSplitting
     from ._validation import ParameterError as ParameterError

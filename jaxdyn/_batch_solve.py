@@ -25,6 +25,7 @@ runs out or a step size that underflows marks that trajectory and leaves the oth
 """
 
 from collections.abc import Callable
+from functools import partial
 from typing import Any, NamedTuple
 
 import diffrax as dfx
@@ -161,6 +162,25 @@ class BatchRun(NamedTuple):
     reason: jax.Array  # index of the violated check for invalid_input
     steps: jax.Array
     rejected: jax.Array
+    switches: jax.Array
+
+
+class Switching(NamedTuple):
+    """How a hybrid scene's trajectories switch mode (see `jaxdyn._hybrid`), each a function of
+    one trajectory (parameters `p`):
+
+    - `switch(p, t, y, hit) -> (y, stop, ended_by)`: at a segment's end where `hit`, the state
+      in its next mode, whether the run ends, and the events that end it (`(n_events,)`);
+    - `rescale(p, t, y) -> (atol, time_scale)`: the error floors and time scale of a segment
+      starting from `(t, y)` (each segment's error control in its own start's natural scales);
+    - `ended_at_start`: `(n, n_events)` booleans, the events that ended the run at `t0`;
+    - `max_switches`: the most switches a run may take (one more is a failure).
+    """
+
+    switch: Callable
+    rescale: Callable
+    ended_at_start: Any
+    max_switches: int
 
 
 class _Rows:
@@ -337,8 +357,11 @@ class _Loop:
     its steps as functions of the carry (a dict whose arrays all have the batch as their last
     axis, so that the batch can be compacted by one gather)."""
 
-    def __init__(self, tab, f, G, weights, *, t1, ts, rtol, max_steps, lockstep, axis_name):
+    def __init__(self, tab, f, G, weights, *, t1, ts, rtol, max_steps, lockstep, axis_name,
+                 switching=None, values=None, dt0=None):
         self.tab, self.f, self.G, self.weights = tab, f, G, weights
+        # Hybrid scenes: `switching` (batched over rows) and the events' values `(k, n)`.
+        self.switching, self.values, self.dt0 = switching, values, dt0
         self.t1, self.ts, self.rtol, self.max_steps = t1, ts, rtol, max_steps
         self.lockstep, self.axis_name = lockstep, axis_name
         self.eps = jnp.finfo(t1.dtype).eps
@@ -362,7 +385,7 @@ class _Loop:
         status = jnp.where(invalid, STATUS.index("invalid_input"), _RUNNING).astype(jnp.int32)
         tvec = jnp.full((n,), t0)
         at_start = jnp.zeros((n,), bool)
-        if self.G is not None:
+        if self.G is not None and self.switching is None:
             at_start = (self.G(p, tvec, y0) <= 0) & ~invalid
             status = jnp.where(at_start, _EVENT, status)
         if dt0 is None:
@@ -378,8 +401,23 @@ class _Loop:
         saved, nxt = _save(self.ts, saved, jnp.zeros((n,), jnp.int32), ~invalid, t0,
                            lambda s: y0)
         zeros = jnp.zeros((n,), jnp.int32)
-        return dict(t=tvec, y=y0, dt=dt, status=status, nacc=zeros, nrej=zeros, p=p,
-                    saved=saved, nxt=nxt, atol=atol, T=time_scale), at_start
+        c = dict(t=tvec, y=y0, dt=dt, status=status, nacc=zeros, nrej=zeros, p=p,
+                 saved=saved, nxt=nxt, atol=atol, T=time_scale, switches=zeros)
+        if self.switching is not None:
+            ended = self.switching.ended_at_start.T & ~invalid
+            c.update(status=jnp.where(jnp.any(ended, axis=0), _EVENT, status), ended_by=ended,
+                     t_seg=tvec, held=self.values(p, tvec, y0) <= 0)
+        return c, at_start
+
+    def condition(self, c, t, y):
+        """The earliest of the events at `(t, y)`: the run (or its segment) goes on while it
+        is positive. For a hybrid scene, the events at zero when the segment started are held
+        (as `jaxdyn._hybrid.Watch.condition` holds them)."""
+        if self.switching is None:
+            return self.G(c["p"], t, y)
+        v = self.values(c["p"], t, y)
+        held = c["held"] & ((t <= c["t_seg"]) | (v == 0))
+        return jnp.min(jnp.where(held, jnp.inf, v), axis=0)
 
     # Each iteration decides on the attempt the one before it computed, then computes the next:
     # the attempt (`h`, and `y1` with the error norm packed by `pack_pairs`, so that the stages
@@ -414,7 +452,14 @@ class _Loop:
         reached = accept & (t + h >= self.t1)
         t_new = jnp.where(reached, self.t1, jnp.where(accept, t + h, t))
         hit = jnp.zeros(alive.shape, bool)
-        if self.G is not None:
+        if self.switching is not None:
+            # A trajectory whose event fires in this step (the last one too) stays at the
+            # step's start, with the step size in `dt`: the event is located, and the mode
+            # switched, below.
+            hit = accept & (self.condition(c, t_new, y1) <= 0)
+            reached = reached & ~hit
+            dt_new = jnp.where(hit, h, dt_new)
+        elif self.G is not None:
             # A trajectory whose event fires in this step stays at the step's start, with the
             # step size in `dt`: the step is taken again after the loop to locate the event, so
             # the loop carries nothing for it.
@@ -433,13 +478,43 @@ class _Loop:
         underflow = alive & ~accept & (dt_new <= underflow_step(t, c["T"], self.eps))
         out_of_steps = alive & ~reached & ~hit & (nacc + nrej >= self.max_steps)
         # (nested selects: jnp.select would reduce over the stacked conditions)
+        ended = hit if self.switching is None else jnp.zeros_like(hit)
         status = jnp.where(reached, STATUS.index("completed"), jnp.where(
-            hit, _EVENT, jnp.where(out_of_steps, STATUS.index("max_steps_reached"), jnp.where(
+            ended, _EVENT, jnp.where(out_of_steps, STATUS.index("max_steps_reached"), jnp.where(
                 underflow, jnp.where(jnp.isfinite(norm), STATUS.index("step_size_underflow"),
                                      STATUS.index("non_finite")), status))))
-        return self.prepare(dict(
-            t=jnp.where(hit, t, t_new), y=_where(advance, y1, y), dt=dt_new, status=status,
-            nacc=nacc, nrej=nrej, p=p, saved=saved, nxt=nxt, atol=c["atol"], T=c["T"]))
+        c = dict(c, t=jnp.where(hit, t, t_new), y=_where(advance, y1, y), dt=dt_new,
+                 status=status, nacc=nacc, nrej=nrej, saved=saved, nxt=nxt)
+        if self.switching is not None:
+            c = jax.lax.cond(jnp.any(hit), partial(self.switch, hit=hit), lambda c: c, c)
+        return self.prepare({k: v for k, v in c.items() if k not in ("h", "attempt")})
+
+    def switch(self, c, hit):
+        """The `hit` rows moved to their event (located as `_locate_events` locates a
+        terminating one), switched into their next mode, and started on a new segment: its
+        held events, error floors, time scale and first step, as `jaxdyn._hybrid` starts one."""
+        p, t = c["p"], c["t"]
+        t_ev, y_ev, saved, nxt = _locate_events(self, hit, p, t, c["y"], c["dt"], c["saved"],
+                                                c["nxt"], lambda s, y: self.condition(c, s, y))
+        y_sw, stop, ended = self.switching.switch(p, t_ev, y_ev, hit)
+        switches = c["switches"] + (hit & ~stop).astype(jnp.int32)
+        new = hit & ~stop & (switches <= self.switching.max_switches)
+        status = jnp.where(hit & stop, _EVENT, jnp.where(
+            hit & ~stop & ~new, STATUS.index("max_steps_reached"),
+            jnp.where(new & (t_ev >= self.t1), STATUS.index("completed"), c["status"])))
+        atol, T = self.switching.rescale(p, t_ev, y_sw)
+        if self.dt0 is None:
+            dt = initial_step(self.f, p, t_ev, y_sw, self.f(p, t_ev, y_sw), self.rtol, atol, T,
+                              self.tab.order)
+        else:
+            dt = jnp.full(t.shape, self.dt0, t.dtype)
+        dt = jnp.minimum(dt, self.t1 - t_ev)
+        return dict(
+            c, t=t_ev, y=_where(hit, y_sw, c["y"]), saved=saved, nxt=nxt, status=status,
+            switches=switches, ended_by=jnp.where(hit & stop, ended, c["ended_by"]),
+            dt=jnp.where(new, dt, c["dt"]), atol=_where(new, atol, c["atol"]),
+            T=jnp.where(new, T, c["T"]), t_seg=jnp.where(new, t_ev, c["t_seg"]),
+            held=jnp.where(new, self.values(p, t_ev, y_sw) <= 0, c["held"]))
 
     def run(self, c, m: int, compact_rows: int | None):
         """Step until every trajectory of this (sub-)batch of `m` rows has finished."""
@@ -471,7 +546,7 @@ def batch_solve(
     field: Callable, conditions: Callable | None, event_names: tuple[str, ...],
     flags, params, y0, t0, t1, ts, *, solver, rtol, atol, max_steps: int,
     lockstep: bool, dt0=None, axis_name: str | None = None,
-    compact_rows: int | None = None, time_scale=None,
+    compact_rows: int | None = None, time_scale=None, switching: Switching | None = None,
 ) -> BatchRun:
     """Integrate a batch of `n` trajectories from `t0` to `t1`.
 
@@ -495,6 +570,9 @@ def batch_solve(
     - `compact_rows`: per-trajectory stepping moves the running trajectories to a batch of half
       the size whenever at most half are running, down to this many rows (`None`: never).
       Every trajectory's arithmetic is the same either way.
+    - `switching`: for hybrid scenes (`conditions` then gives every event of the scene), how
+      the trajectories switch mode: each locates its own events, in the step in which they
+      fire, and goes on in its next mode (see `Switching`).
     """
     tab = tableau(solver)
     n = jax.tree.leaves(y0)[0].shape[0]
@@ -517,10 +595,17 @@ def batch_solve(
         def G(p, t, y):  # the earliest of the events: the run goes on while it is positive
             return jnp.min(batched_c(p, t, rows.tree(y)), axis=1)
 
+    values = None
+    if switching is not None:
+        def values(p, t, y):  # every event, (k, n)
+            return batched_c(p, t, rows.tree(y)).T
+
+        switching = _batched_switching(switching, rows)
     t0, t1 = jnp.asarray(t0, dtype), jnp.asarray(t1, dtype)
     weights = _interpolant_weights(solver.interpolation_cls, len(tab.c) + 1, dtype)
     loop = _Loop(tab, f, G, weights, t1=t1, ts=ts, rtol=rtol, max_steps=max_steps,
-                 lockstep=lockstep, axis_name=axis_name)
+                 lockstep=lockstep, axis_name=axis_name, switching=switching, values=values,
+                 dt0=dt0)
     time_scale = jnp.ones((n,), dtype) if time_scale is None else time_scale
 
     invalid = jnp.any(flags, axis=1)
@@ -529,7 +614,9 @@ def batch_solve(
     t, y, status, p = carry["t"], carry["y"], carry["status"], carry["p"]
     saved, nxt = carry["saved"], carry["nxt"]
     event = {}
-    if G is not None:
+    if switching is not None:
+        event = dict(zip(event_names, carry["ended_by"]))
+    elif G is not None:
         crossed = (status == _EVENT) & ~at_start
         t, y, saved, nxt = _locate_events(loop, crossed, p, t, y, carry["dt"], saved, nxt)
         values = batched_c(p, t, rows.tree(y))
@@ -540,7 +627,25 @@ def batch_solve(
         saved = jax.tree.map(lambda a: jnp.moveaxis(a, -1, 0), rows.tree(saved))
     return BatchRun(t_final=t, y_final=_first(rows.tree(y)), ys=saved, event=event,
                     status=status, reason=jnp.argmax(flags, axis=1).astype(jnp.int32),
-                    steps=carry["nacc"], rejected=carry["nrej"])
+                    steps=carry["nacc"], rejected=carry["nrej"], switches=carry["switches"])
+
+
+def _batched_switching(switching: Switching, rows: _Rows) -> Switching:
+    """`switching`'s functions of one trajectory, over the rows of the batch."""
+    switch = with_vectorised_trig(jax.vmap(switching.switch, in_axes=(-1, 0, -1, 0),
+                                           out_axes=(-1, 0, -1)))
+    rescale = with_vectorised_trig(jax.vmap(switching.rescale, in_axes=(-1, 0, -1),
+                                            out_axes=(-1, 0)))
+
+    def switch_rows(p, t, y, hit):
+        y, stop, ended = switch(p, t, rows.tree(y), hit)
+        return rows.of(y), stop, ended
+
+    def rescale_rows(p, t, y):
+        atol, time_scale = rescale(p, t, rows.tree(y))
+        return rows.of(atol), time_scale
+
+    return switching._replace(switch=switch_rows, rescale=rescale_rows)
 
 
 def _per_trajectory(atol, y0):
@@ -551,10 +656,12 @@ def _per_trajectory(atol, y0):
     return jax.tree.map(lambda x: jnp.full(x.shape[:1], atol, x.dtype), y0)
 
 
-def _locate_events(loop: _Loop, crossed, p, t, y, dt, saved, nxt):
+def _locate_events(loop: _Loop, crossed, p, t, y, dt, saved, nxt, condition=None):
     """The `crossed` rows moved to their event: the step in which it fired, of size `dt`, taken
     again from where the trajectory stopped, and the event time found on its dense interpolant
-    (`illinois`); the save times before it are saved."""
+    (`illinois`, on `condition(t, y)`: by default the earliest of the events); the save times
+    before it are saved."""
+    condition = (lambda s, y: loop.G(p, s, y)) if condition is None else condition
     h = jnp.where(crossed, dt, 0.0)
     ta, ya = t, y
     fs, yb, _ = rk_step(loop.tab, loop.f, p, ta, ya, h)
@@ -565,7 +672,7 @@ def _locate_events(loop: _Loop, crossed, p, t, y, dt, saved, nxt):
 
     # Until every bracket has settled: at most 60 iterations in float64 (30 in float32).
     iterations = 60 if t.dtype == jnp.float64 else 30
-    t_event = illinois(lambda s: loop.G(p, s, interpolate(s)), ta, tb, iterations)
+    t_event = illinois(lambda s: condition(s, interpolate(s)), ta, tb, iterations)
     saved, nxt = _save(loop.ts, saved, nxt, crossed, t_event,
                        lambda s: interpolate(jnp.full(t.shape, s)))
     return (jnp.where(crossed, t_event, t), _where(crossed, interpolate(t_event), y), saved,

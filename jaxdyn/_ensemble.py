@@ -17,12 +17,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import _batch_solve
-from ._batch_solve import STATUS, STATUS_HELP, batch_solve, tableau
+from ._batch_solve import STATUS, STATUS_HELP, Switching, batch_solve, tableau
 from ._chunkstore import ChunkStore, digest
 from ._distributions import AbstractDistribution, name_seed, split_name
+from ._hybrid import Watch
 from ._outcome import Outcome, to_diffrax
 from ._scene import Scene
-from ._simulate import Trajectory, _prepare_run, _simulate, check_tolerances
+from ._simulate import _prepare_run, _simulate, check_tolerances
+from ._solution import Trajectory
 from ._tolerance import FLOOR, ScaledPIDController
 from ._validation import ParameterError
 
@@ -398,23 +400,50 @@ def _run_engine(shared: _Shared, config: _ChunkConfig, params, y0, flags, axis_n
             fns = _scene_of(scene, p).events()
             return jnp.stack([fns[k](t, y) for k in names])
 
-    def tolerances(p, y):  # each variable's floor: FLOOR rtol times its natural scale
+    def tolerances(p, t, y):  # each variable's floor: FLOOR rtol times its natural scale
         bound = ScaledPIDController(rtol=rtol, atol=shared.atol).bind(
-            _scene_of(scene, p), t0, t1, y)
+            _scene_of(scene, p), t, t1, y)
         return {k: FLOOR * rtol * v for k, v in bound.scales.items()}, bound.time_scale
 
-    floors, time_scale = jax.vmap(tolerances)(params, y0)
+    switching = None
+    if names and scene.max_switches:
+        y0, switching = _switching(scene, t0, params, y0, tolerances)
+    floors, time_scale = jax.vmap(partial(tolerances, t=t0))(params, y=y0)
     r = batch_solve(field, conditions, names, flags, params, y0, t0, t1, shared.ts,
                     solver=config.solver, rtol=rtol, atol=floors, max_steps=config.max_steps,
                     lockstep=config.mode == "lockstep", dt0=shared.dt0, axis_name=axis_name,
-                    compact_rows=config.compact_rows, time_scale=time_scale)
-    trajs = eqx.filter_vmap(partial(_engine_trajectory, scene, t0, shared.ts))(
-        params, y0, r.t_final, r.y_final, r.ys, r.event, r.status, r.steps, r.rejected)
+                    compact_rows=config.compact_rows, time_scale=time_scale,
+                    switching=switching)
+    trajs = eqx.filter_vmap(partial(_engine_trajectory, scene, t0, shared.ts,
+                                    switching is not None))(
+        params, y0, r.t_final, r.y_final, r.ys, r.event, r.status, r.steps, r.rejected,
+        r.switches)
     return trajs, r.status, r.reason, r.steps
 
 
-def _engine_trajectory(scene, t0, ts, p, y_start, t_final, y_final, ys, event, status, steps,
-                       rejected) -> Trajectory:
+def _switching(scene, t0, params, y0, tolerances):
+    """A hybrid scene in the engine: each trajectory's state in its first mode, and how the
+    trajectories switch (`Switching`), by the rules of `simulate`'s driver (`Watch`)."""
+    dtype = t0.dtype
+
+    def start(p, y):
+        y, _, ended = Watch(_scene_of(scene, p), 1.0, dtype).start(t0, y)
+        return y, ended
+
+    def switch(p, t, y, hit):
+        return Watch(_scene_of(scene, p), 1.0, dtype).at_event(t, y, hit)
+
+    def rescale(p, t, y):  # the floors with the shape of each variable
+        floors, time_scale = tolerances(p, t, y)
+        return {k: jnp.broadcast_to(v, jnp.shape(y[k])) for k, v in floors.items()}, time_scale
+
+    y0, ended = jax.vmap(start)(params, y0)
+    return y0, Switching(switch=switch, rescale=rescale, ended_at_start=ended,
+                         max_switches=scene.max_switches)
+
+
+def _engine_trajectory(scene, t0, ts, switches_kept, p, y_start, t_final, y_final, ys, event,
+                       status, steps, rejected, switches) -> Trajectory:
     """One trajectory of the batch engine's results, as `simulate` returns it."""
     if ts is None:
         ts_i = jnp.stack([t0, t_final])
@@ -424,7 +453,8 @@ def _engine_trajectory(scene, t0, ts, p, y_start, t_final, y_final, ys, event, s
         ys_i = ys
     return Trajectory(scene=_scene_of(scene, p), ts=ts_i, ys=ys_i, t_final=t_final,
                       y_final=y_final, event=event, result=to_diffrax(status), outcome=status,
-                      stats={"num_accepted_steps": steps, "num_rejected_steps": rejected})
+                      stats={"num_accepted_steps": steps, "num_rejected_steps": rejected,
+                             **({"num_switches": switches} if switches_kept else {})})
 
 
 def _chunk_moments(v, ok):
@@ -637,11 +667,11 @@ def _resolve(scene, y0, t1, *, n, key, vary, parameters, t0, ts, observe, keep, 
         scene, example, t0, t1, ts, solver, rtol, atol, None, dt0, max_steps)
     rtol, atol = (float(x) for x in check_tolerances(rtol, atol, t0.dtype))
     if mode != "vmap":
-        if events and scene.max_switches > 0:
+        switching = [e.kind for e in scene.effects if e.max_switches]
+        if events and switching:  # (a body's modes switch in the engine too)
             raise ParameterError(
-                f"mode={mode!r}: this scene switches during a run (a {scene.body.kind}"
-                f"{''.join(f', {e.kind}' for e in scene.effects if e.max_switches)}); use "
-                "mode='vmap'")
+                f"mode={mode!r}: this scene's effects switch during a run "
+                f"({', '.join(switching)}); use mode='vmap'")
         tableau(solver)
     if isinstance(key, int | np.integer):
         key = jax.random.key(int(key))

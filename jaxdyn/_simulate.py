@@ -1,21 +1,25 @@
 """`simulate`: one entry point over `diffrax.diffeqsolve` for every scene."""
 
 import functools
-from typing import Any
 
 import diffrax as dfx
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
-from jaxtyping import Array, ArrayLike, Bool, Float, Int
+from jaxtyping import ArrayLike
 
 from ._body import AbstractBody
 from ._custom_types import State
-from ._outcome import MESSAGES, NAMES, Outcome, SimulationError, from_diffrax, is_success
+from ._hybrid import integrate
 from ._scene import Scene
-from ._solvers._sampled import Sampled
+from ._solution import (  # noqa: F401  (_PROGRAMS: read by benchmarks/latency.py)
+    _PROGRAMS,
+    Trajectory,
+    _concrete_arrays,
+    _structure_program,
+    raise_on_failure,
+)
 from ._tolerance import ScaledPIDController
 from ._validation import (
     ParameterError,
@@ -24,186 +28,6 @@ from ._validation import (
     is_concrete,
     raise_if_violated,
 )
-
-
-class Trajectory(eqx.Module):
-    """The result of [`jaxdyn.simulate`][]: states at the saved times, and the final state.
-
-    `outcome` is how the run ended, a [`jaxdyn.Outcome`][] code (`traj.outcome_name` gives its
-    name); `result` is diffrax's own result.
-
-    Derived outputs are computed on demand from the scene: `traj.energy`, `traj.omega`,
-    `traj.normal_force`... (any name in `traj.output_names`). Saved times after a terminating
-    event are `inf` (and their states and outputs are not meaningful): `traj.valid` masks them.
-    """
-
-    scene: Scene
-    ts: Float[Array, " times"]
-    ys: State
-    t_final: Float[Array, ""]
-    y_final: State
-    event: dict[str, Bool[Array, ""]]
-    result: dfx.RESULTS
-    outcome: Int[Array, ""]
-    stats: dict[str, Any]
-    interpolation: dfx.DenseInterpolation | None = None
-
-    def evaluate(self, t: Float[ArrayLike, " times"]) -> State:
-        """States at times `t` within the run, from the solver's dense output
-        (`simulate(..., dense=True)`)."""
-        if self.interpolation is None:
-            raise ParameterError("evaluate needs the dense output: simulate(..., dense=True)")
-        t = jnp.asarray(t, self.t_final.dtype)
-        return jax.vmap(self.interpolation.evaluate)(t)
-
-    def resample(self, num: int) -> "Trajectory":
-        """The same run saved at `num` evenly spaced times from its start to its end (the event
-        time if one ended it), from the dense output."""
-        if self.interpolation is None:
-            raise ParameterError("resample needs the dense output: simulate(..., dense=True)")
-        return _resample(self, num)
-
-    @property
-    def outcome_name(self) -> str:
-        """The name of `outcome` (`"completed"`, `"event"`, `"max_steps_reached"`...)."""
-        return NAMES[int(self.outcome)]
-
-    @property
-    def valid(self) -> Bool[Array, " times"]:
-        """True for saved times reached before the run ended."""
-        return jnp.isfinite(self.ts) & (self.ts <= self.t_final)
-
-    @property
-    def output_names(self) -> tuple[str, ...]:
-        return self.scene.output_names()
-
-    def outputs(self) -> dict[str, Array]:
-        """All derived outputs at the saved times."""
-        return _outputs(self.scene, self.ts, self.ys)
-
-    def final_outputs(self) -> dict[str, Array]:
-        """All derived outputs at the final time (the event time if one ended the run)."""
-        return _outputs(self.scene, self.t_final[None], jax.tree.map(lambda x: x[None],
-                                                                    self.y_final))
-
-    @property
-    def event_occurred(self) -> Bool[Array, ""]:
-        """Whether a terminating event ended the run."""
-        flags = list(self.event.values())
-        return jnp.any(jnp.stack(flags)) if flags else jnp.asarray(False)
-
-    def to_xarray(self):
-        """The run as an xarray `Dataset`: time `t` as the coordinate (the samples reached),
-        every state variable and derived output as a variable (array values with a dimension
-        per axis), units in each variable's attributes where the body declares them, and the
-        outcome in the dataset's attributes. Needs xarray (`pip install "jaxdyn[data]"`)."""
-        from ._export import trajectory_to_xarray
-
-        return trajectory_to_xarray(self, self.scene.units())
-
-    def to_dataframe(self):
-        """The run as a pandas `DataFrame` indexed by time (the samples reached): every state
-        variable and derived output, array values split into columns (`omega[0]`, ...).
-        Needs pandas (`pip install "jaxdyn[data]"`)."""
-        from ._export import trajectory_to_dataframe
-
-        return trajectory_to_dataframe(self)
-
-    def report(self) -> dict[str, Any]:
-        """JSON-ready summary of the run (see `Scene.summary`): plain Python numbers and lists,
-        with `None` for values that do not exist for this run."""
-        out = jax.tree.map(_to_python, _summary(self))
-        for key, labels in self.scene.body.report_labels.items():
-            if out.get(key) is not None:
-                out[key] = labels[out[key]]
-        return out
-
-    def __getattr__(self, name: str):
-        if name.startswith("_"):
-            raise AttributeError(name)
-        names = Scene.output_names(self.scene)  # (not a bound method: equinox wraps those)
-        if name in names:
-            return _outputs(self.scene, self.ts, self.ys)[name]
-        raise AttributeError(
-            f"Trajectory has no attribute {name!r}; derived outputs of this scene: {list(names)}"
-        )
-
-
-@eqx.filter_jit
-def _summary(traj: Trajectory) -> dict[str, Any]:
-    return traj.scene.summary(traj.ts, traj.ys, traj.valid, traj.t_final, traj.y_final,
-                              traj.event)
-
-
-def _to_python(x):
-    a = np.asarray(x)
-    if a.ndim == 0:
-        v = a.item()
-        return v if not isinstance(v, float) or np.isfinite(v) else None
-    return [_to_python(v) for v in a]
-
-
-@eqx.filter_jit
-def _resample(traj: Trajectory, num: int) -> Trajectory:
-    t0 = traj.interpolation.t0
-    ts = jnp.linspace(t0, traj.t_final, num)
-    ys = jax.vmap(traj.interpolation.evaluate)(ts)
-    return eqx.tree_at(lambda tr: (tr.ts, tr.ys), traj, (ts, ys))
-
-
-_PROGRAMS: dict = {}  # jax.jit programs by (name, scene structure, options)
-
-
-def _concrete_arrays(*values) -> bool:
-    """Whether every value is a concrete array (no tracer, no Python function): a scene made
-    of such leaves can be passed to a `jax.jit` program as its flat leaves."""
-    return all(isinstance(x, jax.Array | np.ndarray) and not isinstance(x, jax.core.Tracer)
-               for x in values)
-
-
-def _structure_program(name: str, treedef, options, build):
-    """The `jax.jit` program `build(treedef)` for one scene structure (and static options),
-    built once: later calls pass only arrays, so dispatch costs what `jax.jit`'s costs."""
-    key = (name, treedef, options)
-    if key not in _PROGRAMS:
-        _PROGRAMS[key] = jax.jit(build(treedef))
-    return _PROGRAMS[key]
-
-
-def _outputs(scene: Scene, ts, ys) -> dict[str, Array]:
-    """Every derived output at the times `ts`: one `jax.jit` program per scene structure,
-    called with arrays only (equinox's filtered call where the scene holds Python functions
-    or the values are traced)."""
-    leaves, treedef = jax.tree_util.tree_flatten(scene)
-    if not _concrete_arrays(*leaves):
-        return _outputs_filtered(scene, ts, ys)
-
-    def build(treedef):
-        def outputs_program(leaves, ts, ys):
-            scene = jax.tree_util.tree_unflatten(treedef, leaves)
-            return jax.vmap(scene.outputs)(ts, ys)
-
-        return outputs_program
-
-    return _structure_program("outputs", treedef, (), build)(leaves, ts, ys)
-
-
-@eqx.filter_jit
-def _outputs_filtered(scene: Scene, ts, ys) -> dict[str, Array]:
-    return jax.vmap(scene.outputs)(ts, ys)
-
-
-def _finite(y) -> Array:
-    return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree_util.tree_leaves(y)]))
-
-
-def _check_result(result, y_final):
-    """The outcome code of a run (`jaxdyn.Outcome`), and `y_final` with a runtime error
-    attached where it is a failure, whose message names the cause and what to change."""
-    code = from_diffrax(result, _finite(y_final))
-    y_final = eqx.branched_error_if(y_final, ~is_success(code), code,
-                                    [MESSAGES[o] for o in Outcome])
-    return y_final, code
 
 
 def check_tolerances(rtol, atol, dtype) -> tuple:
@@ -234,28 +58,6 @@ def check_tolerances(rtol, atol, dtype) -> tuple:
                 f"use rtol within [{4 * eps:.2g}, 1){hint}"
             )
     return jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype)
-
-
-def _event(scene: Scene, t0, y0, time_scale) -> dfx.Event | None:
-    fns = scene.events()
-    if not fns:
-        return None
-
-    def wrap(f):
-        # The root finder's tolerance applies to the time and to the condition alike: the
-        # condition is measured in units of its initial value and of the scene's time scale,
-        # so both are relative, whatever the units. diffrax compares the condition with a
-        # Python 0.0 in a `lax.cond`: with x64 enabled that is float64, so the condition is
-        # returned in the default float type.
-        c0 = f(t0, y0)
-        k = time_scale / jnp.where(jnp.isfinite(c0) & (c0 > 0), c0, 1.0)
-        return lambda t, y, args, **kwargs: (k * f(t, y)).astype(jnp.result_type(float))
-
-    tol = 1e-12 if t0.dtype == jnp.float64 else 1e-6
-    return dfx.Event(
-        cond_fn={name: wrap(f) for name, f in fns.items()},
-        root_finder=optx.Newton(rtol=tol, atol=tol * time_scale),
-    )
 
 
 def _prepare_run(scene, y0, t0, t1, ts, solver, rtol, atol, stepsize_controller, dt0,
@@ -525,110 +327,12 @@ def simulate_unchecked(scene: Scene, y0: State, t1, *, t0=0.0, ts=None, solver=N
                      solver_saves=isinstance(adjoint, dfx.ForwardMode))
 
 
-def raise_on_failure(traj: Trajectory) -> None:
-    """Raise [`jaxdyn.SimulationError`][] on the host where a run failed (its message names
-    the cause and what to change)."""
-    code = int(traj.outcome)
-    if code in (Outcome.completed, Outcome.event):
-        return
-    stats = traj.stats
-    if (code == Outcome.max_steps_reached and "num_switches" in stats
-            and int(stats["num_steps"]) <= int(stats["max_steps"])):
-        from ._hybrid import _too_many_switches
-
-        raise SimulationError(code, _too_many_switches(traj.scene))
-    raise SimulationError(code)
-
-
 def _simulate_impl(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps, adjoint,
                    events, meter, dense, checks=True, solver_saves=False) -> Trajectory:
-    # checks=False (ensembles): failures are left in `Trajectory.result` instead of raised.
-    # solver_saves: the solver saves at `ts` (see `Sampled`), not diffrax's `SaveAt(ts)`.
-    if checks:
-        y0 = scene.check(y0)
-    if isinstance(controller, ScaledPIDController):
-        controller = controller.bind(scene, t0, t1, y0)
-        time_scale = controller.time_scale
-    else:  # a controller of the user's: the time scale is still the events'
-        time_scale = scene.natural_scales(t0, t1, y0)[1]
-    if events and scene.max_switches > 0:
-        from ._hybrid import simulate_hybrid
-
-        return simulate_hybrid(scene, y0, t0, t1, ts, solver=solver, controller=controller,
-                               dt0=dt0, max_steps=max_steps, adjoint=adjoint, meter=meter,
-                               dense=dense, checks=checks, time_scale=time_scale)
-    event = _event(scene, t0, y0, time_scale) if events else None
-    # Traced sample times are saved by the solver itself (`Sampled`): `SaveAt(ts)` of traced
-    # times carries diffrax's runtime check of them, a host callback.
-    # (Not for implicit solvers: diffrax reads their root finder, which the wrapper hides.)
-    sampled = (solver_saves and ts is not None
-               and not isinstance(solver, dfx.AbstractImplicitSolver))
-    if sampled:
-        if isinstance(adjoint, dfx.ForwardMode) and getattr(solver, "scan_kind", "") is None:
-            # What diffrax does for forward mode, done before wrapping (it cannot see inside).
-            solver = eqx.tree_at(lambda s: s.scan_kind, solver, "lax",
-                                 is_leaf=lambda x: x is None)
-        solver = Sampled(solver, ts)
-        saveat = dfx.SaveAt(t1=True, solver_state=True, dense=dense)
-    else:
-        first = dfx.SubSaveAt(t0=True) if ts is None else dfx.SubSaveAt(ts=ts)
-        saveat = dfx.SaveAt(subs=[first, dfx.SubSaveAt(t1=True)], dense=dense)
-    sol = dfx.diffeqsolve(
-        dfx.ODETerm(scene.vector_field),
-        solver,
-        t0,
-        t1,
-        dt0,
-        y0,
-        saveat=saveat,
-        stepsize_controller=controller,
-        max_steps=max_steps,
-        adjoint=adjoint,
-        args=scene,  # solvers that exploit the scene's structure (splittings) read it here
-        event=event,
-        progress_meter=meter,
-        throw=False,
-    )
-    if sampled:
-        # Times not reached, or after a terminating event, are inf, as diffrax leaves them.
-        _, ys_saved, reached = sol.solver_state
-        t_end, y_end = sol.ts, sol.ys
-        kept = (jnp.arange(ts.size) < reached) & (ts <= t_end[0])
-        ts_saved = jnp.where(kept, ts, jnp.inf)
-        ys_saved = jax.tree.map(
-            lambda a: jnp.where(kept.reshape((-1,) + (1,) * (a.ndim - 1)), a, jnp.inf),
-            ys_saved)
-    else:
-        (ts_saved, t_end), (ys_saved, y_end) = sol.ts, sol.ys
-    if ts is None:
-        ts_saved = jnp.concatenate([ts_saved, t_end])
-        ys_saved = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), ys_saved, y_end)
-    fired = {} if event is None else dict(sol.event_mask)
-    y_final = jax.tree.map(lambda a: a[0], y_end)
-    if checks:
-        y_final, outcome = _check_result(sol.result, y_final)
-    else:
-        outcome = from_diffrax(sol.result, _finite(y_final))
-    t_final = t_end[0]
-    if event is not None:
-        # A terminating event already reached at the start ends the run there.
-        at_start = {name: f(t0, y0) <= 0 for name, f in scene.events().items()}
-        started = jnp.any(jnp.stack(list(at_start.values())))
-        fired = {name: fired[name] | at_start[name] for name in fired}
-        t_final = jnp.where(started, t0, t_final)
-        y_final = jax.tree.map(lambda a, b: jnp.where(started, a, b), y0, y_final)
-    return Trajectory(
-        scene=scene,
-        ts=ts_saved,
-        ys=ys_saved,
-        t_final=t_final,
-        y_final=y_final,
-        event=fired,
-        result=sol.result,
-        outcome=outcome,
-        stats=dict(sol.stats),
-        interpolation=sol.interpolation,
-    )
+    # checks=False (ensembles, fit): failures are left in `Trajectory.outcome`, not raised.
+    return integrate(scene, y0, t0, t1, ts, solver=solver, controller=controller, dt0=dt0,
+                     max_steps=max_steps, adjoint=adjoint, meter=meter, dense=dense,
+                     events=events, checks=checks, solver_saves=solver_saves)
 
 
 _simulate = eqx.filter_jit(_simulate_impl)

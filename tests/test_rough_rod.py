@@ -468,3 +468,39 @@ def test_cli_bad_input(capsys):
     assert status == 2 and out == ""
     assert err.strip() == ("jaxdyn: error: mu_k=0.9: must be finite and within [0, mu_s] "
                            "(kinetic friction cannot exceed static)")
+
+
+def test_ensemble_engine_switches_per_trajectory():
+    # The rough-floor rod in the default ensemble mode (the batch engine: each trajectory
+    # locates its own switches) against `mode="vmap"` (simulate's driver under `jax.vmap`) and
+    # against each member's single run: every case of CASES in one batch, with its own friction.
+    cases = list(CASES.values())
+    (mu_s, mu_k, theta0, theta_dot0) = (np.array(x) for x in zip(*(c[0] for c in cases)))
+    scene = _scene(0.5, 0.4)
+    y0 = scene.state(theta=0.1)
+    y0 = {k: np.repeat(np.asarray(v)[None], len(cases), axis=0) for k, v in y0.items()}
+    y0.update(theta=theta0, theta_dot=theta_dot0)
+    ts = np.linspace(0.0, 1.5, 7)
+
+    def observe(traj):
+        return {**{f"y.{k}": v for k, v in traj.y_final.items()}, "t_final": traj.t_final,
+                "switches": traj.stats["num_switches"], "theta_ts": traj.ys["theta"],
+                **{f"event.{k}": v for k, v in traj.event.items()}}
+
+    options = dict(parameters={"mu_s": mu_s, "mu_k": mu_k}, ts=ts, observe=observe,
+                   rtol=1e-10)
+    engine = jd.ensemble(scene, y0, 5.0, **options)
+    vmap = jd.ensemble(scene, y0, 5.0, mode="vmap", **options)
+    assert engine.mode == "adaptive"
+    assert np.array_equal(engine.status, vmap.status) and engine.completed == len(cases)
+    assert list(engine.values["switches"]) == [c[1] for c in cases]
+    assert np.array_equal(engine.values["switches"], vmap.values["switches"])
+    for k, v in vmap.values.items():
+        scale = np.max(np.abs(v[np.isfinite(v)]), initial=1.0)
+        assert np.allclose(engine.values[k], v, rtol=1e-8, atol=1e-8 * scale,
+                           equal_nan=True), k
+    for i, (params, _) in enumerate(cases):
+        single = _run(*params, ts=ts, rtol=1e-10, atol=None)
+        assert np.isclose(float(single.t_final), vmap.values["t_final"][i], rtol=1e-12)
+        assert int(single.stats["num_switches"]) == vmap.values["switches"][i]
+        assert np.allclose(single.ys["theta"], vmap.values["theta_ts"][i], rtol=1e-12)

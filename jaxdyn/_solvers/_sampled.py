@@ -18,8 +18,10 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from ._wrapped import AbstractDelegatingSolver
 
-class Sampled(dfx.AbstractWrappedSolver):
+
+class Sampled(AbstractDelegatingSolver):
     """`solver`, also saving the state at the increasing times `ts` (a run forwards in time).
 
     For runs that are not reverse-mode differentiated (its loop over the times in a step has a
@@ -32,31 +34,6 @@ class Sampled(dfx.AbstractWrappedSolver):
 
     solver: dfx.AbstractSolver
     ts: Float[Array, " times"]
-
-    @property
-    def scan_kind(self):  # read by diffrax from the Runge-Kutta solvers it wraps
-        return self.solver.scan_kind
-
-    @property
-    def term_structure(self):
-        return self.solver.term_structure
-
-    @property
-    def interpolation_cls(self):  # pyright: ignore
-        return self.solver.interpolation_cls
-
-    @property
-    def term_compatible_contr_kwargs(self):
-        return self.solver.term_compatible_contr_kwargs
-
-    def order(self, terms):
-        return self.solver.order(terms)
-
-    def strong_order(self, terms):
-        return self.solver.strong_order(terms)
-
-    def error_order(self, terms):
-        return self.solver.error_order(terms)
 
     def init(self, terms, t0, t1, y0, args) -> tuple[Any, Any, Array]:
         reached = self.ts <= t0
@@ -84,6 +61,3 @@ class Sampled(dfx.AbstractWrappedSolver):
 
         ys, index = jax.lax.while_loop(pending, save, (ys, index))
         return y1, y_error, dense_info, (inner, ys, index), result
-
-    def func(self, terms, t0, y0, args):
-        return self.solver.func(terms, t0, y0, args)

@@ -1,0 +1,241 @@
+"""The result of a run: [`jaxdyn.Trajectory`][] (as diffrax keeps `Solution` in
+`_solution.py`), the dense output merged over the segments of a run, derived outputs, and the
+host-side report of a failure."""
+
+from typing import Any
+
+import diffrax as dfx
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
+
+from ._custom_types import State
+from ._outcome import NAMES, Outcome, SimulationError
+from ._scene import Scene
+from ._validation import ParameterError
+
+
+class MergedInterpolation(eqx.Module):
+    """Dense output of a run of several segments: the solver's local interpolants of every
+    accepted step, merged into one table (the same interface as
+    `diffrax.DenseInterpolation.evaluate`).
+
+    Times within a run are looked up among the step boundaries, where the last step of each
+    segment ends at its event time; at a switch time the state before the switch is returned.
+    """
+
+    t0: Array
+    t1: Array
+    bounds: Array  # step start times, then the end of the run, then inf
+    t_lo: Array  # each step's own interval, for its interpolant
+    t_hi: Array
+    infos: dict
+    rows: Array  # number of steps
+    y_end: State
+    interpolation_cls: type = eqx.field(static=True)
+
+    def evaluate(self, t, t1=None, left: bool = True) -> State:
+        """The state at time `t` (nan outside the run)."""
+        t = jnp.asarray(t, self.t0.dtype)
+        i = jnp.searchsorted(self.bounds, t, side="left" if left else "right")
+        i = jnp.clip(i.astype(self.rows.dtype) - 1, 0, jnp.maximum(self.rows - 1, 0))
+        info = jax.tree.map(lambda a: a[i], self.infos)
+        y = self.interpolation_cls(t0=self.t_lo[i], t1=self.t_hi[i], **info).evaluate(t)
+        outside = (t < self.t0) | (t > self.t1)
+        return jax.tree.map(
+            lambda a, b: jnp.where(outside, jnp.nan, jnp.where(self.rows == 0, b, a)),
+            y, self.y_end,
+        )
+
+
+class Trajectory(eqx.Module):
+    """The result of [`jaxdyn.simulate`][]: states at the saved times, and the final state.
+
+    `outcome` is how the run ended, a [`jaxdyn.Outcome`][] code (`traj.outcome_name` gives its
+    name); `result` is diffrax's own result.
+
+    Derived outputs are computed on demand from the scene: `traj.energy`, `traj.omega`,
+    `traj.normal_force`... (any name in `traj.output_names`). Saved times after a terminating
+    event are `inf` (and their states and outputs are not meaningful): `traj.valid` masks them.
+    """
+
+    scene: Scene
+    ts: Float[Array, " times"]
+    ys: State
+    t_final: Float[Array, ""]
+    y_final: State
+    event: dict[str, Bool[Array, ""]]
+    result: dfx.RESULTS
+    outcome: Int[Array, ""]
+    stats: dict[str, Any]
+    interpolation: dfx.DenseInterpolation | MergedInterpolation | None = None
+
+    def evaluate(self, t: Float[ArrayLike, " times"]) -> State:
+        """States at times `t` within the run, from the solver's dense output
+        (`simulate(..., dense=True)`)."""
+        if self.interpolation is None:
+            raise ParameterError("evaluate needs the dense output: simulate(..., dense=True)")
+        t = jnp.asarray(t, self.t_final.dtype)
+        return jax.vmap(self.interpolation.evaluate)(t)
+
+    def resample(self, num: int) -> "Trajectory":
+        """The same run saved at `num` evenly spaced times from its start to its end (the event
+        time if one ended it), from the dense output."""
+        if self.interpolation is None:
+            raise ParameterError("resample needs the dense output: simulate(..., dense=True)")
+        return _resample(self, num)
+
+    @property
+    def outcome_name(self) -> str:
+        """The name of `outcome` (`"completed"`, `"event"`, `"max_steps_reached"`...)."""
+        return NAMES[int(self.outcome)]
+
+    @property
+    def valid(self) -> Bool[Array, " times"]:
+        """True for saved times reached before the run ended."""
+        return jnp.isfinite(self.ts) & (self.ts <= self.t_final)
+
+    @property
+    def output_names(self) -> tuple[str, ...]:
+        return self.scene.output_names()
+
+    def outputs(self) -> dict[str, Array]:
+        """All derived outputs at the saved times."""
+        return _outputs(self.scene, self.ts, self.ys)
+
+    def final_outputs(self) -> dict[str, Array]:
+        """All derived outputs at the final time (the event time if one ended the run)."""
+        return _outputs(self.scene, self.t_final[None], jax.tree.map(lambda x: x[None],
+                                                                    self.y_final))
+
+    @property
+    def event_occurred(self) -> Bool[Array, ""]:
+        """Whether a terminating event ended the run."""
+        flags = list(self.event.values())
+        return jnp.any(jnp.stack(flags)) if flags else jnp.asarray(False)
+
+    def to_xarray(self):
+        """The run as an xarray `Dataset`: time `t` as the coordinate (the samples reached),
+        every state variable and derived output as a variable (array values with a dimension
+        per axis), units in each variable's attributes where the body declares them, and the
+        outcome in the dataset's attributes. Needs xarray (`pip install "jaxdyn[data]"`)."""
+        from ._export import trajectory_to_xarray
+
+        return trajectory_to_xarray(self, self.scene.units())
+
+    def to_dataframe(self):
+        """The run as a pandas `DataFrame` indexed by time (the samples reached): every state
+        variable and derived output, array values split into columns (`omega[0]`, ...).
+        Needs pandas (`pip install "jaxdyn[data]"`)."""
+        from ._export import trajectory_to_dataframe
+
+        return trajectory_to_dataframe(self)
+
+    def report(self) -> dict[str, Any]:
+        """JSON-ready summary of the run (see `Scene.summary`): plain Python numbers and lists,
+        with `None` for values that do not exist for this run."""
+        out = jax.tree.map(_to_python, _summary(self))
+        for key, labels in self.scene.body.report_labels.items():
+            if out.get(key) is not None:
+                out[key] = labels[out[key]]
+        return out
+
+    def __getattr__(self, name: str):
+        if name.startswith("_"):
+            raise AttributeError(name)
+        names = Scene.output_names(self.scene)  # (not a bound method: equinox wraps those)
+        if name in names:
+            return _outputs(self.scene, self.ts, self.ys)[name]
+        raise AttributeError(
+            f"Trajectory has no attribute {name!r}; derived outputs of this scene: {list(names)}"
+        )
+
+
+@eqx.filter_jit
+def _summary(traj: Trajectory) -> dict[str, Any]:
+    return traj.scene.summary(traj.ts, traj.ys, traj.valid, traj.t_final, traj.y_final,
+                              traj.event)
+
+
+def _to_python(x):
+    a = np.asarray(x)
+    if a.ndim == 0:
+        v = a.item()
+        return v if not isinstance(v, float) or np.isfinite(v) else None
+    return [_to_python(v) for v in a]
+
+
+@eqx.filter_jit
+def _resample(traj: Trajectory, num: int) -> Trajectory:
+    t0 = traj.interpolation.t0
+    ts = jnp.linspace(t0, traj.t_final, num)
+    ys = jax.vmap(traj.interpolation.evaluate)(ts)
+    return eqx.tree_at(lambda tr: (tr.ts, tr.ys), traj, (ts, ys))
+
+
+_PROGRAMS: dict = {}  # jax.jit programs by (name, scene structure, options)
+
+
+def _concrete_arrays(*values) -> bool:
+    """Whether every value is a concrete array (no tracer, no Python function): a scene made
+    of such leaves can be passed to a `jax.jit` program as its flat leaves."""
+    return all(isinstance(x, jax.Array | np.ndarray) and not isinstance(x, jax.core.Tracer)
+               for x in values)
+
+
+def _structure_program(name: str, treedef, options, build):
+    """The `jax.jit` program `build(treedef)` for one scene structure (and static options),
+    built once: later calls pass only arrays, so dispatch costs what `jax.jit`'s costs."""
+    key = (name, treedef, options)
+    if key not in _PROGRAMS:
+        _PROGRAMS[key] = jax.jit(build(treedef))
+    return _PROGRAMS[key]
+
+
+def _outputs(scene: Scene, ts, ys) -> dict[str, Array]:
+    """Every derived output at the times `ts`: one `jax.jit` program per scene structure,
+    called with arrays only (equinox's filtered call where the scene holds Python functions
+    or the values are traced)."""
+    leaves, treedef = jax.tree_util.tree_flatten(scene)
+    if not _concrete_arrays(*leaves):
+        return _outputs_filtered(scene, ts, ys)
+
+    def build(treedef):
+        def outputs_program(leaves, ts, ys):
+            scene = jax.tree_util.tree_unflatten(treedef, leaves)
+            return jax.vmap(scene.outputs)(ts, ys)
+
+        return outputs_program
+
+    return _structure_program("outputs", treedef, (), build)(leaves, ts, ys)
+
+
+@eqx.filter_jit
+def _outputs_filtered(scene: Scene, ts, ys) -> dict[str, Array]:
+    return jax.vmap(scene.outputs)(ts, ys)
+
+
+def raise_on_failure(traj: Trajectory) -> None:
+    """Raise [`jaxdyn.SimulationError`][] on the host where a run failed (its message names
+    the cause and what to change)."""
+    code = int(traj.outcome)
+    if code in (Outcome.completed, Outcome.event):
+        return
+    stats = traj.stats
+    if (code == Outcome.max_steps_reached and "num_switches" in stats
+            and int(stats["num_steps"]) <= int(stats["max_steps"])):
+        raise SimulationError(code, too_many_switches(traj.scene))
+    raise SimulationError(code)
+
+
+
+def too_many_switches(scene) -> str:
+    """The message of a run that needed more switches than its scene allows."""
+    whose = [f"a {scene.body.kind}"] if scene.body.max_switches else []
+    whose += [f"{label} {e.max_switches}" for label, e in zip(scene.labels, scene.effects)
+              if e.max_switches]
+    return (f"the run needed more than {scene.max_switches} mode switches before t1 (the most "
+            f"{', '.join(whose)} allows): shorten t1"
+            + ("" if scene.body.max_switches else " or raise max_switches"))
