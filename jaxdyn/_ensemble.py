@@ -962,8 +962,10 @@ def ensemble(
       their statistics, or a list of names).
     - `mode`: `"adaptive"` (each trajectory takes its own steps; the default), `"lockstep"`
       (one step size for the whole batch), or `"vmap"` (`jax.vmap` over `simulate`: any diffrax
-      solver, and hybrid bodies such as [`jaxdyn.RoughFloorRod`][], at a fraction of the speed).
-      The first two need an explicit Runge-Kutta solver with an error estimate.
+      solver, and effects that switch such as [`jaxdyn.Thrusters`][], at a fraction of the
+      speed). The first two need an explicit Runge-Kutta solver with an error estimate; hybrid
+      bodies such as [`jaxdyn.RoughFloorRod`][] run in them too, each trajectory locating its
+      own mode switches.
     - `chunk_size`: trajectories per compiled call, rounded up to a multiple of the number of
       devices (default: `n` split into equal chunks of at most 16384, with a multiple of 8
       per device; a size of your own runs fastest as a multiple of 8 per device too).

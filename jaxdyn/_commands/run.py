@@ -52,8 +52,9 @@ def run(args) -> int:
 
     t0 = compile_clock()
     if spec.scene.max_switches > spec.scene.body.max_switches:
-        # Effects that switch (thrusters): hundreds of segments, whose dense output would each
-        # cost the whole step budget; the samples are saved as the run goes instead.
+        # Effects that switch (thrusters): the samples are saved as the run goes. (Dense output
+        # now costs one table of the whole step budget for the run, not one per segment, but
+        # that table is still most of a short run: 156 ms against 48 ms for 137 steps.)
         import jax.numpy as jnp
 
         traj = simulate(spec.scene, spec.y0, spec.t1, rtol=spec.rtol, atol=spec.atol,
