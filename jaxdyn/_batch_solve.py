@@ -56,6 +56,11 @@ what the slowest one in the chunk costs. Each size is another copy of the loop t
 than 2048, and 256 at most 2% faster than 1024 for twice the extra compile time."""
 
 
+SWITCH_ROWS = 64
+"""Rows of a batch whose mode switches are located and applied together (hybrid scenes in the
+engine): a step in which some trajectories switch gathers them, this many at a time."""
+
+
 class Tableau(NamedTuple):
     a: tuple[tuple[float, ...], ...]
     b: tuple[float, ...]
@@ -486,8 +491,29 @@ class _Loop:
         c = dict(c, t=jnp.where(hit, t, t_new), y=_where(advance, y1, y), dt=dt_new,
                  status=status, nacc=nacc, nrej=nrej, saved=saved, nxt=nxt)
         if self.switching is not None:
-            c = jax.lax.cond(jnp.any(hit), partial(self.switch, hit=hit), lambda c: c, c)
+            c = jax.lax.cond(jnp.any(hit), partial(self.switch_rows, hit=hit), lambda c: c, c)
         return self.prepare({k: v for k, v in c.items() if k not in ("h", "attempt")})
+
+    def switch_rows(self, c, hit):
+        """`switch` for the `hit` rows, gathered `SWITCH_ROWS` at a time: a step in which a few
+        trajectories switch costs what locating their events costs, not what locating them
+        over the whole batch would (each row's result is its own either way)."""
+        n = hit.shape[0]
+        k = min(n, SWITCH_ROWS)
+
+        def some(state):
+            c, pending = state
+            # The pending rows first, then the others, each in their order (as `run` orders
+            # the running ones): the first `k` are distinct rows, the pending among them.
+            pos = jnp.where(pending, jnp.cumsum(pending) - 1,
+                            jnp.sum(pending) + jnp.cumsum(~pending) - 1)
+            rows = jnp.zeros((n,), jnp.int32).at[pos].set(
+                jnp.arange(n, dtype=jnp.int32), unique_indices=True)[:k]
+            sub = self.switch(jax.tree.map(lambda x: x[..., rows], c), pending[rows])
+            c = jax.tree.map(lambda x, s: x.at[..., rows].set(s), c, sub)
+            return c, pending.at[rows].set(False)
+
+        return jax.lax.while_loop(lambda state: jnp.any(state[1]), some, (c, hit))[0]
 
     def switch(self, c, hit):
         """The `hit` rows moved to their event (located as `_locate_events` locates a

@@ -16,6 +16,7 @@ from scipy.optimize import brentq
 from test_cli import assert_frictionless_rod_summary, run_cli, run_json
 
 import jaxdyn as jd
+from jaxdyn import _batch_solve
 
 L, M, G = 1.0, 1.0, 9.81
 TIGHT = dict(rtol=1e-12, atol=1e-12)
@@ -470,10 +471,13 @@ def test_cli_bad_input(capsys):
                            "(kinetic friction cannot exceed static)")
 
 
-def test_ensemble_engine_switches_per_trajectory():
+def test_ensemble_engine_switches_per_trajectory(monkeypatch):
     # The rough-floor rod in the default ensemble mode (the batch engine: each trajectory
     # locates its own switches) against `mode="vmap"` (simulate's driver under `jax.vmap`) and
     # against each member's single run: every case of CASES in one batch, with its own friction.
+    # The engine switches two rows at a time here, so that rows switching in the same step
+    # are gathered in several passes.
+    monkeypatch.setattr(_batch_solve, "SWITCH_ROWS", 2)
     cases = list(CASES.values())
     (mu_s, mu_k, theta0, theta_dot0) = (np.array(x) for x in zip(*(c[0] for c in cases)))
     scene = _scene(0.5, 0.4)
