@@ -45,6 +45,7 @@ STATUS_HELP = {o.name: MESSAGES[o] for o in Outcome if o not in SUCCESS}
 
 _SAFETY, _FACTOR_MIN, _FACTOR_MAX = 0.9, 0.2, 10.0
 _RUNNING = -1  # the status of a trajectory still being integrated
+_HELD = 1e6  # the value of a held event (as `jaxdyn._hybrid` holds them): finite, for Illinois
 _EVENT = STATUS.index("event")
 
 COMPACT_ROWS = 1024
@@ -422,7 +423,7 @@ class _Loop:
             return self.G(c["p"], t, y)
         v = self.values(c["p"], t, y)
         held = c["held"] & ((t <= c["t_seg"]) | (v == 0))
-        return jnp.min(jnp.where(held, jnp.inf, v), axis=0)
+        return jnp.min(jnp.where(held, _HELD, v), axis=0)
 
     # Each iteration decides on the attempt the one before it computed, then computes the next:
     # the attempt (`h`, and `y1` with the error norm packed by `pack_pairs`, so that the stages
