@@ -24,9 +24,9 @@ from ._custom_types import State
 from ._rigid_body import RigidBody
 from ._rod import FallingRod
 from ._scene import Scene
-from ._simulate import simulate
+from ._simulate import check_tolerances, raise_on_failure, simulate, simulate_unchecked
 from ._solvers import RK4, RotationSplitting
-from ._tolerance import FLOOR
+from ._tolerance import FLOOR, ScaledPIDController
 from ._validation import ParameterError
 
 
@@ -150,6 +150,47 @@ def reference(problem: Problem) -> tuple[Any, State, str]:
     return traj.t_final, traj.y_final, "Dopri8 rtol 1e-13"
 
 
+def _check_setting(problem: Problem, solver, kind: str, value: float):
+    """What `simulate` checks of a study's settings, on the host (the solves run in the
+    study's own program, where traced values are not checked): the initial state, and a
+    tolerance or step that the solver can use. A method that does not apply to the scene (a
+    splitting of the rod) is refused when its program is traced. Returns the state's dtype."""
+    y0 = problem.scene.check_state(problem.y0)
+    for name, v in y0.items():
+        if not np.all(np.isfinite(np.asarray(v))):
+            raise ParameterError(f"y0[{name!r}]: must be finite")
+    dtype = jnp.result_type(*y0.values())
+    if kind == "tolerance":
+        if not isinstance(solver, dfx.AbstractAdaptiveSolver):
+            raise ParameterError(f"solver {type(solver).__name__} takes fixed steps: sweep "
+                                 "it over steps, not tolerances")
+        check_tolerances(value, None, dtype)
+    elif not (np.isfinite(value) and value > 0):
+        raise ParameterError(f"step={value!r}: must be positive and finite")
+    return dtype
+
+
+def _solve_program(problem: Problem, solver, kind: str, max_steps: int):
+    """One compiled program per method of a study, the swept value (`rtol` or the step) and
+    the sample times its arguments: each point of the sweep costs what its solve costs, not
+    a call's argument checks (done once per method by `simulate`, which this program then
+    matches; its outcome is raised on the host by `raise_on_failure`). The run takes no
+    derivative, so it is in forward mode, where the solver saves the samples itself: the
+    program holds no host callback and the persistent cache keeps it."""
+
+    @jax.jit
+    def solve(scene, y0, value, ts):
+        if kind == "tolerance":
+            kw = dict(stepsize_controller=ScaledPIDController(rtol=value,
+                                                              atol=jnp.zeros_like(value)))
+        else:
+            kw = dict(stepsize_controller=dfx.ConstantStepSize(), dt0=value)
+        return simulate_unchecked(scene, y0, problem.t1, ts=ts, solver=solver,
+                                  max_steps=max_steps, adjoint=dfx.ForwardMode(), **kw)
+
+    return solve
+
+
 def _stages(solver) -> int | None:
     if isinstance(solver, RotationSplitting):
         return 0  # exact rotations, no vector-field evaluations
@@ -207,25 +248,26 @@ def study(problem: Problem, methods: Sequence[Method] | None = None, *, repeats:
         settings = [("tolerance", v) for v in method.tolerances] + [
             ("step", v) for v in method.steps]
         max_steps = int(problem.t1 / min(method.steps)) + 16 if method.steps else 1_000_000
-        compile_time = None
+        compile_time, programs = None, {}
         try:
             for kind, value in settings:
                 if kind == "tolerance":
-                    kw = dict(rtol=value, ts=ts)  # error control in the natural scales
+                    # Error control in the natural scales; the samples on the common grid.
+                    on = ts
                 else:
                     # A step that divides the horizon, and samples on step points: invariants
                     # are measured where the method computed them, not on its linear dense
                     # output between steps.
                     value = problem.t1 / np.ceil(problem.t1 / value)
-                    on_steps = np.minimum(np.round(np.asarray(ts) / value) * value, problem.t1)
-                    kw = dict(dt0=value, stepsize_controller=dfx.ConstantStepSize(),
-                              ts=jnp.asarray(on_steps))
-
-                def run(kw=kw):
-                    return simulate(problem.scene, problem.y0, problem.t1, solver=method.solver,
-                                    max_steps=max_steps, **kw)
-
-                traj, first, wall = _timed(run, repeats)
+                    on = jnp.asarray(
+                        np.minimum(np.round(np.asarray(ts) / value) * value, problem.t1))
+                dtype = _check_setting(problem, method.solver, kind, value)
+                if kind not in programs:
+                    programs[kind] = _solve_program(problem, method.solver, kind, max_steps)
+                arguments = (problem.scene, problem.y0, jnp.asarray(value, dtype),
+                             jnp.asarray(on, dtype))
+                traj, first, wall = _timed(lambda f=programs[kind], a=arguments: f(*a), repeats)
+                raise_on_failure(traj)
                 if compile_time is None:
                     compile_time = max(first - wall, 0.0)
                 steps = int(traj.stats["num_steps"])
