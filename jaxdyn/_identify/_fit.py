@@ -92,27 +92,28 @@ class _Problem(eqx.Module):
         scene = self.scene.replace(params) if params else self.scene
         return scene, y0
 
-    def predict(self, u: Float[Array, " n"], ts: Float[Array, " N"],
-                values=None) -> dict[str, Array]:
-        scene, y0 = self.scene_and_state(u, values)
+    def simulate(self, scene: Scene, y0: State, ts: Float[Array, " N"]):
+        """Outputs and states of `scene` from `y0` at the times `ts` (from `ts[0]`), and
+        whether the integration succeeded."""
         traj = simulate_unchecked(
             scene, y0, ts[-1], t0=ts[0], ts=ts,
             # A controller built here, so that the tolerances are arrays (no recompilation).
             stepsize_controller=ScaledPIDController(rtol=self.rtol, atol=self.atol),
             max_steps=self.max_steps, adjoint=dfx.ForwardMode(), events=False,
         )
-        out = jax.vmap(scene.outputs)(traj.ts, traj.ys)
+        return jax.vmap(scene.outputs)(traj.ts, traj.ys), traj.ys, is_success(traj.outcome)
+
+    def predict(self, u: Float[Array, " n"], ts: Float[Array, " N"],
+                values=None) -> dict[str, Array]:
+        scene, y0 = self.scene_and_state(u, values)
+        out, _, ok = self.simulate(scene, y0, ts)
         # A failed integration (a trial point too wild to integrate) gives NaN residuals: the
         # optimiser rejects the point, and a fit that ends there reports not converging. No
         # runtime check rides in the program, so JAX's persistent cache can keep it.
-        ok = is_success(traj.outcome)
         return {name: jnp.where(ok, out[name], jnp.nan) for name in self.outputs}
 
-    def residuals(self, u, ts, data, weights) -> Float[Array, " m"]:
-        """Weighted residuals, in the dtype of `u` (the optimiser's), whatever the dtype of the
-        simulation (the data's)."""
-        values = self.values(u)  # once: the scene, the initial state and the sensor biases
-        pred = self.predict(u, ts, values)
+    def output_residuals(self, values, pred, data, weights) -> list[Array]:
+        """Weighted residuals of each output (flat), from the predicted outputs `pred`."""
         parts = []
         for name, kind, sigma in zip(self.outputs, self.kinds, self.sigma):
             p = pred[name]
@@ -124,7 +125,14 @@ class _Problem(eqx.Module):
                 r = (p - data[name]) / sigma
             r = r.reshape(r.shape[0], -1) * jnp.sqrt(weights)[:, None]
             parts.append(r.ravel())
-        return jnp.concatenate(parts).astype(u.dtype)
+        return parts
+
+    def residuals(self, u, ts, data, weights) -> Float[Array, " m"]:
+        """Weighted residuals, in the dtype of `u` (the optimiser's), whatever the dtype of the
+        simulation (the data's)."""
+        values = self.values(u)  # once: the scene, the initial state and the sensor biases
+        pred = self.predict(u, ts, values)
+        return jnp.concatenate(self.output_residuals(values, pred, data, weights)).astype(u.dtype)
 
 
 _BIAS = "bias."  # fitted sensor biases are named "bias.<output>"
@@ -364,15 +372,17 @@ def _summaries(problem, u, free):
 
 
 @eqx.filter_jit
-def _uncertainty(problem, u, free, r, J, n_obs):
+def _uncertainty(problem, u, free, H, rss, n_obs):
     """Gauss--Newton covariance of `u` and the 1-sigma intervals of the reported summaries,
-    from the residuals `r` and Jacobian `J` at the optimum `u`."""
+    from the normal matrix `H = J^T J` and the residual sum of squares `rss` at the optimum
+    `u` (both from the whole record, however they were accumulated)."""
     dtype = u.dtype
-    J, r = jnp.where(free, J.astype(dtype), 0.0), r.astype(dtype)
+    fixed = jnp.where(free, 0.0, 1.0).astype(dtype)
+    H = jnp.where(free[:, None] & free[None, :], H.astype(dtype), 0.0)
     dof = jnp.maximum(n_obs - jnp.sum(free), 1).astype(dtype)
-    s2 = jnp.sum(r**2) / dof
-    H = J.T @ J + jnp.diag(jnp.where(free, 0.0, 1.0).astype(dtype))
-    cov = jnp.where(free[:, None] & free[None, :], s2 * jnp.linalg.inv(H), 0.0)
+    s2 = rss.astype(dtype) / dof
+    cov = jnp.where(free[:, None] & free[None, :], s2 * jnp.linalg.inv(H + jnp.diag(fixed)),
+                    0.0)
     values = _summaries(problem, u, free)
     G = jax.jacfwd(_summaries, argnums=1)(problem, u, free)
     eps = jnp.finfo(dtype).eps
@@ -386,11 +396,14 @@ def _uncertainty(problem, u, free, r, J, n_obs):
         sd = jnp.where(undetermined, jnp.nan, jnp.sqrt(jnp.maximum(var, 0.0)))
         std[key] = sd.reshape(values[key].shape).astype(values[key].dtype)
     # Conditioning of the free columns scaled to unit norm: a tiny singular value is a
-    # combination of components that the data do not determine.
-    norms = jnp.linalg.norm(J, axis=0)
-    Js = J / jnp.where(norms > 0, norms, 1.0)
-    _, sv, vt = jnp.linalg.svd(Js, full_matrices=False)
-    return r, cov, values, std, s2, sv, vt
+    # combination of components that the data do not determine. (The singular values of the
+    # scaled Jacobian are the square roots of the eigenvalues of the scaled normal matrix.)
+    norms = jnp.sqrt(jnp.diag(H))
+    d = jnp.where(norms > 0, 1.0 / norms, 0.0)
+    lam, vecs = jnp.linalg.eigh(d[:, None] * H * d[None, :])
+    sv = jnp.sqrt(jnp.maximum(lam[::-1], 0.0))
+    vt = vecs[:, ::-1].T
+    return cov, values, std, s2, sv, vt
 
 
 # -- public API -----------------------------------------------------------------------------
@@ -444,15 +457,21 @@ class FitResult:
     restart_losses: np.ndarray
 
 
-def _rms_by_output(r, obs, padded, sigmas, kinds):
+def _sums_by_output(r, obs, padded, kinds):
+    """Sums of squared residuals of each output, from the whole residual vector `r`."""
     out, start = {}, 0
-    for (name, d), sigma, kind in zip(obs.items(), sigmas, kinds):
+    for (name, d), kind in zip(obs.items(), kinds):
         width = _width(kind, d.shape[1:])
-        part = r[start:start + padded * width]
+        out[name] = float(np.sum(r[start:start + padded * width] ** 2))
         start += padded * width
-        out[name] = float(np.sqrt(np.sum(part**2) / (d.shape[0] * width))
-                          * np.max(np.asarray(sigma)))
     return out
+
+
+def _rms_by_output(sums, obs, sigmas, kinds):
+    """RMS residual of each output in its own units, from its sum of squares."""
+    return {name: float(np.sqrt(sums[name] / (d.shape[0] * _width(kind, d.shape[1:])))
+                        * np.max(np.asarray(sigma)))
+            for (name, d), sigma, kind in zip(obs.items(), sigmas, kinds)}
 
 
 def _as_key(key):
@@ -868,7 +887,8 @@ def fit(
     if reweight and len(outputs) > 1:
         # Weight each output by its own residual scale, and refit from the optimum (the
         # same compiled functions: `sigma` is an array of the problem).
-        rms = _rms_by_output(np.asarray(r), obs, ts_p.size, problem.sigma, problem.kinds)
+        rms = _rms_by_output(_sums_by_output(np.asarray(r), obs, ts_p.size, problem.kinds),
+                             obs, problem.sigma, problem.kinds)
         problem = eqx.tree_at(lambda p: p.sigma, problem,
                               tuple(jnp.asarray(rms[k] * setup.scale, dtype)
                                     for k in outputs))
@@ -879,7 +899,7 @@ def fit(
                 "iterations": best["iterations"] + again["iterations"]}
         loss, u = best["loss"], best["u"]
         r, J = _jacobian(problem, u, ts_p, obs_p, weights)
-    r, cov, values, std, s2, sv, vt = _uncertainty(problem, u, free, r, J, n_obs)
+    cov, values, std, s2, sv, vt = _uncertainty(problem, u, free, J.T @ J, jnp.sum(r**2), n_obs)
 
     identifiable = {c: bool(f) for c, f in zip(components, free_np)}
     notes = dict(notes or {})
@@ -902,8 +922,9 @@ def fit(
         values=values, std=std, identifiable=identifiable, notes=tuple(lines),
         scene=scene_fit, y0=y0_fit, u=u, components=components, covariance=cov,
         loss=float(loss) * c2, residual_rms=float(np.sqrt(2 * loss * c2 / n_obs)),
-        residual_rms_by_output=_rms_by_output(np.asarray(r), obs, ts_p.size, problem.sigma,
-                                              problem.kinds),
+        residual_rms_by_output=_rms_by_output(
+            _sums_by_output(np.asarray(r), obs, ts_p.size, problem.kinds), obs, problem.sigma,
+            problem.kinds),
         noise_variance=float(s2) * c2, converged=best["converged"],
         iterations=best["iterations"], history=best["history"] * c2, stages=best["stages"],
         restart_losses=np.array([run["loss"] for run in runs]) * c2,
