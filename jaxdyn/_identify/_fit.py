@@ -457,6 +457,8 @@ class FitResult:
       (Adam steps, then the polishing method's over each horizon), `stages`: the iterations
       at which each stage (Adam, then each horizon) begins; `restart_losses`: the final loss
       of every start that was run.
+    - `segments`: the number of segments of the fit (multiple shooting), 1 for single
+      shooting.
     """
 
     values: dict[str, Array]
@@ -477,6 +479,7 @@ class FitResult:
     history: np.ndarray
     stages: tuple[int, ...]
     restart_losses: np.ndarray
+    segments: int = 1
 
 
 def _sums_by_output(r, obs, padded, kinds):
@@ -911,8 +914,10 @@ def fit(
                     history.append(np.asarray(hist)[:int(k)])
                     stages.append(iterations)
                     iterations += int(k)
+            # (A refit from an optimum, `warm_up=False`, needs no continuation.)
             run = shooting.run(problem, u, free_np, tol, max_iter,
-                               _tick if progress else _silent_tick)
+                               _tick if progress else _silent_tick,
+                               stages=None if warm_up else (1.0,))
             return {**run, "history": np.concatenate(history + [run["history"]]),
                     "stages": (*stages, iterations), "iterations": iterations + run["iterations"]}
         history, stages, iterations = [], [], 0
@@ -1020,5 +1025,6 @@ def fit(
         noise_variance=float(s2) * c2, converged=best["converged"],
         iterations=best["iterations"], history=best["history"] * c2, stages=best["stages"],
         restart_losses=np.array([run["loss"] for run in runs]) * c2,
+        segments=1 if shooting is None else shooting.segments,
     )
 

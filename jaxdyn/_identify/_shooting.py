@@ -30,6 +30,8 @@ condensed normal matrix is that of single shooting, and gives the Gauss--Newton 
 
 import dataclasses
 import math
+import os
+import time
 from typing import Any
 
 import equinox as eqx
@@ -40,9 +42,10 @@ import numpy as np
 from ._parameterisation import Unconstrained, UnitQuaternion
 
 _CONTINUITY = 10.0  # weight of a continuity defect, relative to its segment's data
-_STAGES = (1e-3, 1e-2, 1e-1, 1.0)  # continuation: factors of the continuity weights
+_STAGES = (1e-2, 1.0)  # continuation: factors of the continuity weights
 _MEMORY = 2**28
-_SEGMENT_STEPS = 20_000  # bytes of Jacobian blocks and saved tangents per chunk of segments
+_SEGMENT_STEPS = 20_000
+_DEBUG = bool(os.environ.get('JAXDYN_DEBUG_MS'))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -505,18 +508,22 @@ class Shooting:
                     break
         return p, s, B, k, converged
 
-    def run(self, problem, u, free, tol, max_iter, tick):
+    def run(self, problem, u, free, tol, max_iter, tick, stages=None):
         """Levenberg--Marquardt on the lifted problem from `u`, then constrained Gauss--Newton
         steps that close the continuity defects; returns the run's summary (as single
         shooting's) with the normal matrix `H` of `u` and the sums of squares by output."""
         free = np.asarray(free)
         p_free = jnp.asarray(free[self.u_is_p])
+        _t0 = time.perf_counter()
         p, s, smaps, wc, B = self.start(problem, u)
+        if _DEBUG:
+            print("start", time.perf_counter() - _t0)
         history, iterations, converged = [], 0, False
         # Continuation in the continuity weight: nearly independent segments first (each
         # prediction starts in phase with its data: the basin of a short record), then tied.
-        for i, factor in enumerate(_STAGES):
-            last = i == len(_STAGES) - 1
+        stages = _STAGES if stages is None else stages
+        for i, factor in enumerate(stages):
+            last = i == len(stages) - 1
             if i == 0:
                 scale = jnp.asarray(factor, wc.dtype)
                 B = {**B, "d": B["d"] * scale, "P": B["P"] * scale, "G": B["G"] * scale,
@@ -527,7 +534,9 @@ class Shooting:
                 problem, p, s, smaps, wc * factor, B, p_free,
                 tol if last else max(tol, 1e-4), max_iter, tick, history)
             iterations += k
-        wc = wc * _STAGES[-1]
+            if _DEBUG:
+                print("stage", factor, k, converged, _lifted(B), time.perf_counter() - _t0)
+        wc = wc * stages[-1]
         # Close the defects: constrained Gauss-Newton (condensed) steps.
         closed = False
         for _ in range(8):
@@ -544,6 +553,8 @@ class Shooting:
             if step <= tol * (1 + _max_abs(p, s)):
                 closed = True
                 break
+        if _DEBUG:
+            print("closed", closed, time.perf_counter() - _t0)
         H, *_ = condense(B, p_free, self.s0_free)
         ss = np.asarray(jnp.sum(B["ss"], axis=0))
         data_loss = 0.5 * float(ss.sum())
