@@ -459,6 +459,9 @@ class FitResult:
       of every start that was run.
     - `segments`: the number of segments of the fit (multiple shooting), 1 for single
       shooting.
+    - `posterior`: with `fit(posterior=n)`, `n` posterior draws of each quantity of `values`
+      (NUTS; shape `(n, *shape)`), else `None`; `posterior_acceptance`: NUTS's mean
+      acceptance rate.
     """
 
     values: dict[str, Array]
@@ -480,6 +483,8 @@ class FitResult:
     stages: tuple[int, ...]
     restart_losses: np.ndarray
     segments: int = 1
+    posterior: dict[str, np.ndarray] | None = None
+    posterior_acceptance: float | None = None
 
 
 def _sums_by_output(r, obs, padded, kinds):
@@ -748,6 +753,8 @@ def fit(
     reweight: bool = False,
     progress: bool = False,
     segments: int | None = None,
+    posterior: int = 0,
+    warmup: int = 300,
 ) -> FitResult:
     r"""Fit parameters and initial state of a scene to sampled outputs (least squares).
 
@@ -811,6 +818,14 @@ def fit(
       in natural time, one segment per `10 / W` for a record longer than `40 / W`, else
       single shooting. Given `horizons`, single shooting.
 
+    - `posterior`: a number of draws to sample from the posterior of the fitted quantities by
+      NUTS (blackjax, `pip install 'jaxdyn[posterior]'`) after `warmup` adaptation steps,
+      through the same residuals: a Gaussian likelihood with the fitted noise variance and
+      a weakly informative Gaussian prior (standard deviation 10) on each unconstrained
+      component around the starting point (see `FitResult.posterior`). For where the
+      Gauss--Newton intervals cannot be trusted, as for the axes of a nearly axisymmetric
+      body. Default 0: none.
+
     Long records are fitted by multiple shooting: the state at the start of each segment is
     an unknown of its own, started from the data where they measure it (gyro rates less the
     fitted bias, star-tracker attitudes) and from a simulation of the starting guess
@@ -841,6 +856,7 @@ def fit(
     if method not in ("lm", "lbfgs"):
         raise ParameterError(f"method={method!r}: allowed are 'lm', 'lbfgs'")
     for field, value, low in (("restarts", restarts, 1), ("agree", agree, 1),
+                              ("posterior", posterior, 0), ("warmup", warmup, 1),
                               ("max_iter", max_iter, 1), ("adam_steps", adam_steps, 0)):
         if not isinstance(value, int) or value < low:
             kind = "a positive" if low else "a non-negative"
@@ -1000,6 +1016,18 @@ def fit(
         H, rss, sums = normal_and_sums(best, u)
     cov, values, std, s2, sv, vt = _uncertainty(problem, u, free, H, rss, n_obs)
 
+    draws, acceptance = None, None
+    if posterior:
+        from ._posterior import sample
+
+        index = np.nonzero(free_np)[0]
+        us, acceptance = sample(
+            problem, u.astype(u0.dtype), jnp.asarray(index), u0, ts_p, obs_p, weights,
+            s2, cov[index][:, index], jax.random.fold_in(key, 1), draws=posterior,
+            warmup=warmup)
+        draws = jax.tree.map(np.asarray,
+                             jax.vmap(lambda v: _summaries(problem, v, free))(us))
+        acceptance = float(acceptance)
     identifiable = {c: bool(f) for c, f in zip(components, free_np)}
     notes = dict(notes or {})
     lines = []
@@ -1026,5 +1054,6 @@ def fit(
         iterations=best["iterations"], history=best["history"] * c2, stages=best["stages"],
         restart_losses=np.array([run["loss"] for run in runs]) * c2,
         segments=1 if shooting is None else shooting.segments,
+        posterior=draws, posterior_acceptance=acceptance,
     )
 
