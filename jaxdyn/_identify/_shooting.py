@@ -21,7 +21,10 @@ the Schur complement on `p`: the cost is linear in the number of segments.
 
 Continuity weights `W` are scale-free: a defect in a state variable counts as much as the
 data of one segment would change if the next segment started off by that defect, times
-`_CONTINUITY` (chosen so that defects end far below the noise). Once the lifted problem has
+`_CONTINUITY` (chosen so that defects end far below the noise); the weights start 100 times
+smaller (nearly independent segments, each in phase with its data) and are then raised
+(`_STAGES`). The caller fits the start of the record by single shooting first, which gives
+the global parameters a start within the basin of every segment. Once the lifted problem has
 converged, a few constrained Gauss--Newton steps (condensing: each segment's state change
 expressed, through the linearised continuity conditions, by the changes of `p` and `s_0`)
 close the defects exactly, so the estimate is the single-shooting least-squares estimate; the
@@ -30,9 +33,6 @@ condensed normal matrix is that of single shooting, and gives the Gauss--Newton 
 
 import dataclasses
 import math
-import os
-import time
-from typing import Any
 
 import equinox as eqx
 import jax
@@ -43,9 +43,8 @@ from ._parameterisation import Unconstrained, UnitQuaternion
 
 _CONTINUITY = 10.0  # weight of a continuity defect, relative to its segment's data
 _STAGES = (1e-2, 1.0)  # continuation: factors of the continuity weights
-_MEMORY = 2**28
+_MEMORY = 2**28  # bytes of Jacobian blocks and saved tangents per chunk of segments
 _SEGMENT_STEPS = 20_000
-_DEBUG = bool(os.environ.get('JAXDYN_DEBUG_MS'))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -153,10 +152,6 @@ def bind_segments(templates, names, ys):
         return maps, s
 
     return eqx.filter_vmap(one)(ys)
-
-
-def _chunk(n_segments, per_segment_bytes):
-    return int(max(1, min(n_segments, 1024, _MEMORY // max(per_segment_bytes, 1))))
 
 
 @eqx.filter_jit
@@ -364,11 +359,8 @@ def memory_per_segment(points: int, unknowns: int, state_size: int, residual_wid
 
 
 def chunk(n_segments: int, per_segment: int) -> int:
-    return _chunk(n_segments, per_segment)
-
-
-def as_numpy(tree: Any) -> Any:
-    return jax.tree.map(np.asarray, tree)
+    """Segments per batch of a linearisation, so that a batch holds about `_MEMORY` bytes."""
+    return int(max(1, min(n_segments, 1024, _MEMORY // max(per_segment, 1))))
 
 
 @eqx.filter_jit
@@ -514,10 +506,7 @@ class Shooting:
         shooting's) with the normal matrix `H` of `u` and the sums of squares by output."""
         free = np.asarray(free)
         p_free = jnp.asarray(free[self.u_is_p])
-        _t0 = time.perf_counter()
         p, s, smaps, wc, B = self.start(problem, u)
-        if _DEBUG:
-            print("start", time.perf_counter() - _t0)
         history, iterations, converged = [], 0, False
         # Continuation in the continuity weight: nearly independent segments first (each
         # prediction starts in phase with its data: the basin of a short record), then tied.
@@ -534,8 +523,6 @@ class Shooting:
                 problem, p, s, smaps, wc * factor, B, p_free,
                 tol if last else max(tol, 1e-4), max_iter, tick, history)
             iterations += k
-            if _DEBUG:
-                print("stage", factor, k, converged, _lifted(B), time.perf_counter() - _t0)
         wc = wc * stages[-1]
         # Close the defects: constrained Gauss-Newton (condensed) steps.
         closed = False
@@ -553,8 +540,6 @@ class Shooting:
             if step <= tol * (1 + _max_abs(p, s)):
                 closed = True
                 break
-        if _DEBUG:
-            print("closed", closed, time.perf_counter() - _t0)
         H, *_ = condense(B, p_free, self.s0_free)
         ss = np.asarray(jnp.sum(B["ss"], axis=0))
         data_loss = 0.5 * float(ss.sum())
