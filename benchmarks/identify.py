@@ -30,12 +30,19 @@ error of the moments reached at each size. jaxdyn's fit there is one start with 
 continuation (spans chosen by the record's length); `first_s` includes compilation,
 `warm_s` (a second record of the same length, other noise) does not.
 
-Run: `python benchmarks/identify.py [--quick] [--sizes 100,1000,10000,100000]`.
+Records longer than 40 natural time units are fitted by multiple shooting (`segments` in
+each row: the number chosen by the record's length; 1 is single shooting). `peak_rss_mb` is
+the process's peak resident memory after the row (monotone over the run: run one size alone,
+`--sizes 1000000 --skip-main`, to read the memory of that size).
+
+Run: `python benchmarks/identify.py [--quick] [--sizes 100,1000,10000,100000]
+[--scipy-max 1000] [--skip-main]`.
 """
 
 import argparse
 import json
 import platform
+import resource
 import statistics
 import time
 
@@ -119,7 +126,17 @@ def main() -> None:
     parser.add_argument("--sizes", default="100,1000,10000",
                         help="record lengths for the scaling table (comma-separated; '' "
                              "skips it)")
+    parser.add_argument("--scipy-max", type=int, default=1000,
+                        help="largest record that SciPy fits in the scaling table")
+    parser.add_argument("--skip-main", action="store_true",
+                        help="only the scaling table (not the 200-sample comparison)")
     args = parser.parse_args()
+    if args.skip_main:
+        sizes = [int(float(x)) for x in args.sizes.split(",") if x.strip()]
+        scene = jd.Scene(jd.RigidBody([0.6, 0.8, 1.0]))
+        print(json.dumps({"scaling": [scaling_row(args.seed, n, scene, args.scipy_max)
+                                      for n in sizes]}, indent=2))
+        return
     repeats = 3 if args.quick else 7
     samples, t1, noise = 200, 20.0, 0.01
 
@@ -205,11 +222,11 @@ def main() -> None:
         out["jaxdyn"]["moments_error"] <= out["scipy"]["moments_error"] + 0.01 * sigma)
     out["target_met"] = bool(out["speedup"] >= 10 and out["equal_or_better_accuracy"])
     sizes = [int(float(x)) for x in args.sizes.split(",") if x.strip()]
-    out["scaling"] = [scaling_row(args.seed, n, scene) for n in sizes]
+    out["scaling"] = [scaling_row(args.seed, n, scene, args.scipy_max) for n in sizes]
     print(json.dumps(out, indent=2))
 
 
-def scaling_row(seed: int, samples: int, scene) -> dict:
+def scaling_row(seed: int, samples: int, scene, scipy_max: int = 1000) -> dict:
     """One row of the scaling table: a record of `samples` at 10 Hz."""
     rate, noise = 10.0, 0.01
     t1 = (samples - 1) / rate
@@ -228,8 +245,8 @@ def scaling_row(seed: int, samples: int, scene) -> dict:
            "moments_error": float(np.max(np.abs(
                np.asarray(res.values["inertia.principal_moments"]) - truth))),
            "std": float(np.max(np.asarray(res.std["inertia.principal_moments"]))),
-           "stages": len(res.stages), "iterations": res.iterations}
-    if samples <= 10_000:
+           "stages": len(res.stages), "iterations": res.iterations, "segments": res.segments}
+    if samples <= 100_000:
         other = data + noise * np.random.default_rng(seed + 1).normal(size=data.shape)
         row["warm_s"] = fit(other)[1]
     body = jd.Scene(jd.RigidBody(tensor))
@@ -242,7 +259,8 @@ def scaling_row(seed: int, samples: int, scene) -> dict:
         sims.append(time.perf_counter() - t0)
     row["simulate_s"] = statistics.median(sims)
     row["fit_over_simulate"] = row.get("warm_s", first_s) / row["simulate_s"]
-    if samples <= 1000:
+    row["peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    if samples <= scipy_max:
         u0 = jd.ValidInertia().to_unconstrained(scene.body.inertia)
         v0 = np.concatenate([np.asarray(u0)[1:], data[0]])
         t0 = time.perf_counter()

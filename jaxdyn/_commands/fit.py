@@ -1,7 +1,9 @@
 """`jaxdyn fit`: identify a scene's parameters and initial state from a CSV of samples."""
 
+import argparse
 import csv
 import math
+import sys
 import time
 import warnings
 from pathlib import Path
@@ -25,6 +27,11 @@ def _columns_help() -> str:
     return "; ".join(parts)
 
 
+def _progress(flag) -> bool:
+    """`--progress`/`--no-progress`, else a bar only where standard error is a terminal."""
+    return bool(flag) if flag is not None else sys.stderr.isatty()
+
+
 def add_arguments(parser) -> None:
     parser.add_argument("data", metavar="DATA.csv",
                         help=f"samples with a header row (t in s): {_columns_help()}; units "
@@ -45,8 +52,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="seed of the random restarts")
     parser.add_argument("--method", choices=("lm", "lbfgs"), default="lm",
                         help="lm: Levenberg-Marquardt (default); lbfgs: Adam then L-BFGS")
-    parser.add_argument("--progress", action="store_true",
-                        help="show a progress bar (on standard error)")
+    parser.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
+                        help="show a progress bar on standard error (default: when standard "
+                             "error is a terminal)")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
 
 
@@ -237,7 +245,7 @@ def run(args) -> int:
     result = fit(scene, ts, data, parameters=parameters, initial=initial, y0=loaded.y0,
                  bias=list(dict.fromkeys(args.bias)), notes=spec.notes,
                  restarts=args.restarts, key=args.seed, method=args.method,
-                 reweight=True, progress=args.progress, **tolerances)
+                 reweight=True, progress=_progress(args.progress), **tolerances)
     fit_s = time.perf_counter() - t0
 
     v, s = result.values, result.std

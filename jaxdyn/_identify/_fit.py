@@ -92,27 +92,28 @@ class _Problem(eqx.Module):
         scene = self.scene.replace(params) if params else self.scene
         return scene, y0
 
-    def predict(self, u: Float[Array, " n"], ts: Float[Array, " N"],
-                values=None) -> dict[str, Array]:
-        scene, y0 = self.scene_and_state(u, values)
+    def simulate(self, scene: Scene, y0: State, ts: Float[Array, " N"]):
+        """Outputs and states of `scene` from `y0` at the times `ts` (from `ts[0]`), and
+        whether the integration succeeded."""
         traj = simulate_unchecked(
             scene, y0, ts[-1], t0=ts[0], ts=ts,
             # A controller built here, so that the tolerances are arrays (no recompilation).
             stepsize_controller=ScaledPIDController(rtol=self.rtol, atol=self.atol),
             max_steps=self.max_steps, adjoint=dfx.ForwardMode(), events=False,
         )
-        out = jax.vmap(scene.outputs)(traj.ts, traj.ys)
+        return jax.vmap(scene.outputs)(traj.ts, traj.ys), traj.ys, is_success(traj.outcome)
+
+    def predict(self, u: Float[Array, " n"], ts: Float[Array, " N"],
+                values=None) -> dict[str, Array]:
+        scene, y0 = self.scene_and_state(u, values)
+        out, _, ok = self.simulate(scene, y0, ts)
         # A failed integration (a trial point too wild to integrate) gives NaN residuals: the
         # optimiser rejects the point, and a fit that ends there reports not converging. No
         # runtime check rides in the program, so JAX's persistent cache can keep it.
-        ok = is_success(traj.outcome)
         return {name: jnp.where(ok, out[name], jnp.nan) for name in self.outputs}
 
-    def residuals(self, u, ts, data, weights) -> Float[Array, " m"]:
-        """Weighted residuals, in the dtype of `u` (the optimiser's), whatever the dtype of the
-        simulation (the data's)."""
-        values = self.values(u)  # once: the scene, the initial state and the sensor biases
-        pred = self.predict(u, ts, values)
+    def output_residuals(self, values, pred, data, weights) -> list[Array]:
+        """Weighted residuals of each output (flat), from the predicted outputs `pred`."""
         parts = []
         for name, kind, sigma in zip(self.outputs, self.kinds, self.sigma):
             p = pred[name]
@@ -124,7 +125,14 @@ class _Problem(eqx.Module):
                 r = (p - data[name]) / sigma
             r = r.reshape(r.shape[0], -1) * jnp.sqrt(weights)[:, None]
             parts.append(r.ravel())
-        return jnp.concatenate(parts).astype(u.dtype)
+        return parts
+
+    def residuals(self, u, ts, data, weights) -> Float[Array, " m"]:
+        """Weighted residuals, in the dtype of `u` (the optimiser's), whatever the dtype of the
+        simulation (the data's)."""
+        values = self.values(u)  # once: the scene, the initial state and the sensor biases
+        pred = self.predict(u, ts, values)
+        return jnp.concatenate(self.output_residuals(values, pred, data, weights)).astype(u.dtype)
 
 
 _BIAS = "bias."  # fitted sensor biases are named "bias.<output>"
@@ -223,6 +231,28 @@ def _small_decrease(previous, loss, tol):
 
 def _silent(**kwargs) -> None:
     pass
+
+
+def _silent_tick(loss) -> None:
+    pass
+
+
+def _multiple_shooting(problem, setup, count):
+    """The multiple-shooting driver of this problem over `count` segments, or `None` where
+    it does not apply (then the fit is by single shooting)."""
+    from ._shooting import Shooting, cut, layout
+
+    found = layout(problem, problem.scene)
+    if found is None:
+        return None
+    seg = cut(setup.ts, setup.obs, count)
+    if seg.weights.shape[0] < 3:
+        return None
+    shooting = Shooting(problem, *found, seg, setup.n_obs)
+    span = float(setup.ts[-1] - setup.ts[0])
+    natural = _natural_span(problem, setup.u0, setup.ts)
+    shooting.prefix = 4 * _TURNS * span / natural if natural > 0 else span / 4
+    return shooting
 
 
 class _LevenbergMarquardt(optx.AbstractGaussNewton):
@@ -364,15 +394,17 @@ def _summaries(problem, u, free):
 
 
 @eqx.filter_jit
-def _uncertainty(problem, u, free, r, J, n_obs):
+def _uncertainty(problem, u, free, H, rss, n_obs):
     """Gauss--Newton covariance of `u` and the 1-sigma intervals of the reported summaries,
-    from the residuals `r` and Jacobian `J` at the optimum `u`."""
+    from the normal matrix `H = J^T J` and the residual sum of squares `rss` at the optimum
+    `u` (both from the whole record, however they were accumulated)."""
     dtype = u.dtype
-    J, r = jnp.where(free, J.astype(dtype), 0.0), r.astype(dtype)
+    fixed = jnp.where(free, 0.0, 1.0).astype(dtype)
+    H = jnp.where(free[:, None] & free[None, :], H.astype(dtype), 0.0)
     dof = jnp.maximum(n_obs - jnp.sum(free), 1).astype(dtype)
-    s2 = jnp.sum(r**2) / dof
-    H = J.T @ J + jnp.diag(jnp.where(free, 0.0, 1.0).astype(dtype))
-    cov = jnp.where(free[:, None] & free[None, :], s2 * jnp.linalg.inv(H), 0.0)
+    s2 = rss.astype(dtype) / dof
+    cov = jnp.where(free[:, None] & free[None, :], s2 * jnp.linalg.inv(H + jnp.diag(fixed)),
+                    0.0)
     values = _summaries(problem, u, free)
     G = jax.jacfwd(_summaries, argnums=1)(problem, u, free)
     eps = jnp.finfo(dtype).eps
@@ -386,11 +418,14 @@ def _uncertainty(problem, u, free, r, J, n_obs):
         sd = jnp.where(undetermined, jnp.nan, jnp.sqrt(jnp.maximum(var, 0.0)))
         std[key] = sd.reshape(values[key].shape).astype(values[key].dtype)
     # Conditioning of the free columns scaled to unit norm: a tiny singular value is a
-    # combination of components that the data do not determine.
-    norms = jnp.linalg.norm(J, axis=0)
-    Js = J / jnp.where(norms > 0, norms, 1.0)
-    _, sv, vt = jnp.linalg.svd(Js, full_matrices=False)
-    return r, cov, values, std, s2, sv, vt
+    # combination of components that the data do not determine. (The singular values of the
+    # scaled Jacobian are the square roots of the eigenvalues of the scaled normal matrix.)
+    norms = jnp.sqrt(jnp.diag(H))
+    d = jnp.where(norms > 0, 1.0 / norms, 0.0)
+    lam, vecs = jnp.linalg.eigh(d[:, None] * H * d[None, :])
+    sv = jnp.sqrt(jnp.maximum(lam[::-1], 0.0))
+    vt = vecs[:, ::-1].T
+    return cov, values, std, s2, sv, vt
 
 
 # -- public API -----------------------------------------------------------------------------
@@ -422,6 +457,11 @@ class FitResult:
       (Adam steps, then the polishing method's over each horizon), `stages`: the iterations
       at which each stage (Adam, then each horizon) begins; `restart_losses`: the final loss
       of every start that was run.
+    - `segments`: the number of segments of the fit (multiple shooting), 1 for single
+      shooting.
+    - `posterior`: with `fit(posterior=n)`, `n` posterior draws of each quantity of `values`
+      (NUTS; shape `(n, *shape)`), else `None`; `posterior_acceptance`: NUTS's mean
+      acceptance rate.
     """
 
     values: dict[str, Array]
@@ -442,17 +482,26 @@ class FitResult:
     history: np.ndarray
     stages: tuple[int, ...]
     restart_losses: np.ndarray
+    segments: int = 1
+    posterior: dict[str, np.ndarray] | None = None
+    posterior_acceptance: float | None = None
 
 
-def _rms_by_output(r, obs, padded, sigmas, kinds):
+def _sums_by_output(r, obs, padded, kinds):
+    """Sums of squared residuals of each output, from the whole residual vector `r`."""
     out, start = {}, 0
-    for (name, d), sigma, kind in zip(obs.items(), sigmas, kinds):
+    for (name, d), kind in zip(obs.items(), kinds):
         width = _width(kind, d.shape[1:])
-        part = r[start:start + padded * width]
+        out[name] = float(np.sum(r[start:start + padded * width] ** 2))
         start += padded * width
-        out[name] = float(np.sqrt(np.sum(part**2) / (d.shape[0] * width))
-                          * np.max(np.asarray(sigma)))
     return out
+
+
+def _rms_by_output(sums, obs, sigmas, kinds):
+    """RMS residual of each output in its own units, from its sum of squares."""
+    return {name: float(np.sqrt(sums[name] / (d.shape[0] * _width(kind, d.shape[1:])))
+                        * np.max(np.asarray(sigma)))
+            for (name, d), sigma, kind in zip(obs.items(), sigmas, kinds)}
 
 
 def _as_key(key):
@@ -649,18 +698,32 @@ def _setup(scene, ts, data, parameters, initial, y0, sigma, rtol, atol, max_step
 _TURNS = 10.0  # the first horizon of a long record, in natural time units (1/W)
 
 
+def _natural_span(problem, u0, ts) -> float:
+    """The record's span in natural time units (`1/W` at the starting point)."""
+    scene, y0 = _scene_and_state(problem, u0)
+    span = float(ts[-1] - ts[0])
+    time_scale = float(scene.natural_scales(ts[0], ts[-1], y0)[1])
+    if not np.isfinite(time_scale) or time_scale <= 0:
+        return 0.0
+    return span / time_scale
+
+
 def _auto_horizons(problem, u0, ts) -> tuple[float, ...]:
     """Continuation spans for a record of this length: `(0.25, 0.5, 1)` for a short record,
     else spans doubling from `_TURNS` natural time units (the scene's time scale `1/W` at the
     starting point) to the whole record."""
-    scene, y0 = _scene_and_state(problem, u0)
-    span = float(ts[-1] - ts[0])
-    time_scale = float(scene.natural_scales(ts[0], ts[-1], y0)[1])
-    first = _TURNS * time_scale
-    if not np.isfinite(first) or first <= 0 or span <= 4 * first:
+    natural = _natural_span(problem, u0, ts)
+    if natural <= 4 * _TURNS:
         return (0.25, 0.5, 1.0)
-    k = int(np.ceil(np.log2(span / first)))
-    return tuple(float(first * 2.0**i / span) for i in range(k)) + (1.0,)
+    k = int(np.ceil(np.log2(natural / _TURNS)))
+    return tuple(float(_TURNS * 2.0**i / natural) for i in range(k)) + (1.0,)
+
+
+def _auto_segments(problem, u0, ts) -> int:
+    """Segments for multiple shooting: one per `_TURNS` natural time units for a record
+    longer than `4 _TURNS`, else 1 (single shooting)."""
+    natural = _natural_span(problem, u0, ts)
+    return int(np.ceil(natural / _TURNS)) if natural > 4 * _TURNS else 1
 
 
 def fit(
@@ -689,6 +752,9 @@ def fit(
     notes: Mapping[str, str] | None = None,
     reweight: bool = False,
     progress: bool = False,
+    segments: int | None = None,
+    posterior: int = 0,
+    warmup: int = 300,
 ) -> FitResult:
     r"""Fit parameters and initial state of a scene to sampled outputs (least squares).
 
@@ -747,6 +813,26 @@ def fit(
       weight each output by the RMS of its own residuals and refit from the optimum, so that
       each output counts by its noise level (and the intervals use each output's noise).
     - `progress`: show a tqdm progress bar over the iterations of all starts.
+    - `segments`: multiple shooting (see below): the number of segments of equal duration
+      the record is cut into; `1` fits by single shooting. Default: by the record's length
+      in natural time, one segment per `10 / W` for a record longer than `40 / W`, else
+      single shooting. Given `horizons`, single shooting.
+
+    - `posterior`: a number of draws to sample from the posterior of the fitted quantities by
+      NUTS (blackjax, `pip install 'jaxdyn[posterior]'`) after `warmup` adaptation steps,
+      through the same residuals: a Gaussian likelihood with the fitted noise variance and
+      a weakly informative Gaussian prior (standard deviation 10) on each unconstrained
+      component around the starting point (see `FitResult.posterior`). For where the
+      Gauss--Newton intervals cannot be trusted, as for the axes of a nearly axisymmetric
+      body. Default 0: none.
+
+    Long records are fitted by multiple shooting: the state at the start of each segment is
+    an unknown of its own, started from the data where they measure it (gyro rates less the
+    fitted bias, star-tracker attitudes) and from a simulation of the starting guess
+    elsewhere, tied to the previous segment's end by continuity residuals; the block-sparse
+    normal equations are solved segment by segment, so time and memory grow linearly with
+    the record. Once converged, the continuity defects are closed exactly (constrained
+    Gauss--Newton steps), so the estimate and its intervals are those of single shooting.
 
     **Returns:**
 
@@ -770,6 +856,7 @@ def fit(
     if method not in ("lm", "lbfgs"):
         raise ParameterError(f"method={method!r}: allowed are 'lm', 'lbfgs'")
     for field, value, low in (("restarts", restarts, 1), ("agree", agree, 1),
+                              ("posterior", posterior, 0), ("warmup", warmup, 1),
                               ("max_iter", max_iter, 1), ("adam_steps", adam_steps, 0)):
         if not isinstance(value, int) or value < low:
             kind = "a positive" if low else "a non-negative"
@@ -778,11 +865,17 @@ def fit(
         horizons = tuple(float(h) for h in horizons)
         if not horizons or horizons[-1] != 1.0 or any(not 0 < h <= 1 for h in horizons):
             raise ParameterError(f"horizons={horizons}: fractions in (0, 1], the last one 1")
+    if segments is not None and (not isinstance(segments, int) or segments < 1):
+        raise ParameterError(f"segments={segments!r}: must be a positive integer (1: single "
+                             "shooting)")
     setup = _setup(scene, ts, data, parameters, initial, y0, sigma, rtol, atol, max_steps,
                    bias)
     problem, u0, ts, obs = setup.problem, setup.u0, setup.ts, setup.obs
+    if segments is None:
+        segments = 1 if horizons is not None else _auto_segments(problem, u0, ts)
+    shooting = _multiple_shooting(problem, setup, segments) if segments > 1 else None
     if horizons is None:
-        horizons = _auto_horizons(problem, u0, ts)
+        horizons = (1.0,) if shooting is not None else _auto_horizons(problem, u0, ts)
     ts_p, obs_p, weights = setup.ts_p, setup.obs_p, setup.weights
     maps, components, n_obs, dtype = problem.maps, setup.components, setup.n_obs, setup.dtype
     outputs = problem.outputs
@@ -793,9 +886,12 @@ def fit(
         identifiability_tol = 1e-6 if eps < 1e-10 else 1e-3
     # Structural identifiability: a zero Jacobian column at the start (the column of a
     # parameter that the outputs do not depend on) stays zero everywhere.
-    _, J0 = _jacobian(problem, u0, ts_p, obs_p, weights)
-    norms = np.linalg.norm(np.asarray(J0), axis=0)
-    free_np = norms > identifiability_tol * norms.max()
+    if shooting is None:
+        _, J0 = _jacobian(problem, u0, ts_p, obs_p, weights)
+        norms = np.linalg.norm(np.asarray(J0), axis=0)
+        free_np = norms > identifiability_tol * norms.max()
+    else:
+        free_np = shooting.free(problem, u0, identifiability_tol)
     free = jnp.asarray(free_np)
 
     key = _as_key(key)
@@ -811,7 +907,35 @@ def fit(
     tol_early = jnp.asarray(max(tol, 1e-4), u0.dtype)
     lr = jnp.asarray(learning_rate, u0.dtype)
 
+    if shooting is not None:
+        # The start of the record (4 x 10/W) is fitted first by single shooting, with its
+        # short-record continuation (a quarter, half, all of it): the basin of a short record.
+        n_pre = max(int(np.searchsorted(ts, ts[0] + shooting.prefix, side="right")), 3)
+        pre_ts, pre_obs, pre_w = _pad(np.asarray(ts[:n_pre]),
+                                      {k: v[:n_pre] for k, v in obs.items()})
+        pre_ts, pre_w = jnp.asarray(pre_ts), jnp.asarray(pre_w)
+        pre_obs = {k: jnp.asarray(v) for k, v in pre_obs.items()}
+
     def _run_start(u, horizons=horizons, warm_up=True):
+        if shooting is not None:
+            history, stages, iterations = [], [], 0
+            if warm_up:
+                for h in (0.25, 0.5, 1.0):
+                    t_h = ts[:n_pre][ts[:n_pre] <= ts[0] + h * (ts[n_pre - 1] - ts[0])][-1]
+                    w = jnp.where(pre_ts <= t_h, pre_w, 0.0)
+                    u, _, k, _, hist = polish(problem, u, free, jnp.minimum(pre_ts, t_h),
+                                              pre_obs, w, tol_early, max_iter=max_iter,
+                                              progress=progress)
+                    u = jnp.where(free, u, u0)
+                    history.append(np.asarray(hist)[:int(k)])
+                    stages.append(iterations)
+                    iterations += int(k)
+            # (A refit from an optimum, `warm_up=False`, needs no continuation.)
+            run = shooting.run(problem, u, free_np, tol, max_iter,
+                               _tick if progress else _silent_tick,
+                               stages=None if warm_up else (1.0,))
+            return {**run, "history": np.concatenate(history + [run["history"]]),
+                    "stages": (*stages, iterations), "iterations": iterations + run["iterations"]}
         history, stages, iterations = [], [], 0
         if adam_steps and warm_up:
             u, losses = _adam(problem, u, free, ts_p, obs_p, weights, lr, steps=adam_steps,
@@ -843,14 +967,15 @@ def fit(
     if progress:
         from tqdm.auto import tqdm
 
-        total = restarts * (adam_steps + len(horizons) * max_iter)
+        total = restarts * (adam_steps + len(horizons) * max_iter
+                            + (max_iter + 10 if shooting is not None else 0))
         bar = tqdm(total=total, desc="fit", unit="it")
         _BAR["bar"] = bar
     try:
         for u_start in starts:
             runs.append(_run_start(u_start))
             if bar is not None:
-                bar.update(max_iter * len(horizons) + adam_steps - runs[-1]["iterations"])
+                bar.update(max(0, bar.total // restarts * len(runs) - bar.n))
             losses = np.array([run["loss"] for run in runs])
             agreeing = [run["converged"] and run["loss"] <= losses.min() * (1 + 1e-5)
                         for run in runs]
@@ -864,11 +989,21 @@ def fit(
 
     best = runs[int(np.argmin([run["loss"] for run in runs]))]
     loss, u = best["loss"], best["u"]
-    r, J = _jacobian(problem, u, ts_p, obs_p, weights)
+
+    def normal_and_sums(best, u):
+        """The normal matrix, residual sum of squares and sums by output at the optimum."""
+        if shooting is not None:
+            sums = dict(zip(outputs, (float(x) for x in best["ss"])))
+            return best["H"], jnp.asarray(sum(sums.values())), sums
+        r, J = _jacobian(problem, u, ts_p, obs_p, weights)
+        return (J.T @ J, jnp.sum(r**2),
+                _sums_by_output(np.asarray(r), obs, ts_p.size, problem.kinds))
+
+    H, rss, sums = normal_and_sums(best, u)
     if reweight and len(outputs) > 1:
         # Weight each output by its own residual scale, and refit from the optimum (the
         # same compiled functions: `sigma` is an array of the problem).
-        rms = _rms_by_output(np.asarray(r), obs, ts_p.size, problem.sigma, problem.kinds)
+        rms = _rms_by_output(sums, obs, problem.sigma, problem.kinds)
         problem = eqx.tree_at(lambda p: p.sigma, problem,
                               tuple(jnp.asarray(rms[k] * setup.scale, dtype)
                                     for k in outputs))
@@ -878,9 +1013,21 @@ def fit(
                                                  for s_ in again["stages"]),
                 "iterations": best["iterations"] + again["iterations"]}
         loss, u = best["loss"], best["u"]
-        r, J = _jacobian(problem, u, ts_p, obs_p, weights)
-    r, cov, values, std, s2, sv, vt = _uncertainty(problem, u, free, r, J, n_obs)
+        H, rss, sums = normal_and_sums(best, u)
+    cov, values, std, s2, sv, vt = _uncertainty(problem, u, free, H, rss, n_obs)
 
+    draws, acceptance = None, None
+    if posterior:
+        from ._posterior import sample
+
+        index = np.nonzero(free_np)[0]
+        us, acceptance = sample(
+            problem, u.astype(u0.dtype), jnp.asarray(index), u0, ts_p, obs_p, weights,
+            s2, cov[index][:, index], jax.random.fold_in(key, 1), draws=posterior,
+            warmup=warmup)
+        draws = jax.tree.map(np.asarray,
+                             jax.vmap(lambda v: _summaries(problem, v, free))(us))
+        acceptance = float(acceptance)
     identifiable = {c: bool(f) for c, f in zip(components, free_np)}
     notes = dict(notes or {})
     lines = []
@@ -902,10 +1049,11 @@ def fit(
         values=values, std=std, identifiable=identifiable, notes=tuple(lines),
         scene=scene_fit, y0=y0_fit, u=u, components=components, covariance=cov,
         loss=float(loss) * c2, residual_rms=float(np.sqrt(2 * loss * c2 / n_obs)),
-        residual_rms_by_output=_rms_by_output(np.asarray(r), obs, ts_p.size, problem.sigma,
-                                              problem.kinds),
+        residual_rms_by_output=_rms_by_output(sums, obs, problem.sigma, problem.kinds),
         noise_variance=float(s2) * c2, converged=best["converged"],
         iterations=best["iterations"], history=best["history"] * c2, stages=best["stages"],
         restart_losses=np.array([run["loss"] for run in runs]) * c2,
+        segments=1 if shooting is None else shooting.segments,
+        posterior=draws, posterior_acceptance=acceptance,
     )
 
