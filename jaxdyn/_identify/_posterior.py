@@ -70,7 +70,10 @@ def sample(problem, u, free_index, u_prior, ts, data, weights, s2, cov, key, *, 
         blackjax.nuts, log_density, is_mass_matrix_diagonal=False,
         initial_inverse_mass_matrix=cov + 1e-12 * jnp.eye(v0.size, dtype=v0.dtype),
         adaptation_info_fn=lambda *a: None)
-    (state, params), _ = warm.run(k_warm, v0, num_steps=warmup)
+    # blackjax's adaptation schedule mixes Python integers and booleans: traced under the
+    # standard promotion rules, whatever the caller's (strict promotion, as in the tests).
+    with jax.numpy_dtype_promotion("standard"):
+        (state, params), _ = warm.run(k_warm, v0, num_steps=warmup)
     kernel = blackjax.nuts(log_density, **params)
 
     def step(state, k):
