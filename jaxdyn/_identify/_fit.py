@@ -934,8 +934,24 @@ def fit(
             run = shooting.run(problem, u, free_np, tol, max_iter,
                                _tick if progress else _silent_tick,
                                stages=None if warm_up else (1.0,))
-            return {**run, "history": np.concatenate(history + [run["history"]]),
-                    "stages": (*stages, iterations), "iterations": iterations + run["iterations"]}
+            history.append(run["history"])
+            stages.append(iterations)
+            iterations += run["iterations"]
+            if run["converged"]:
+                return {**run, "history": np.concatenate(history), "stages": tuple(stages),
+                        "iterations": iterations}
+            # The segments' defects did not close (an effect whose torque is not smooth in the
+            # state, as a saturating B-dot law): single shooting finishes from multiple
+            # shooting's estimate, which lies in its basin, and says whether it converged.
+            u, loss, k, ok, hist = polish(problem, run["u"], free, ts_p, obs_p, weights, tol_a,
+                                          max_iter=max_iter, progress=progress)
+            u = jnp.where(free, u, u0)
+            history.append(np.asarray(hist)[:int(k)])
+            stages.append(iterations)
+            loss = float(loss)
+            return {"loss": loss if np.isfinite(loss) else np.inf, "u": u,
+                    "converged": bool(ok), "iterations": iterations + int(k),
+                    "history": np.concatenate(history), "stages": tuple(stages)}
         history, stages, iterations = [], [], 0
         if adam_steps and warm_up:
             u, losses = _adam(problem, u, free, ts_p, obs_p, weights, lr, steps=adam_steps,
@@ -992,7 +1008,7 @@ def fit(
 
     def normal_and_sums(best, u):
         """The normal matrix, residual sum of squares and sums by output at the optimum."""
-        if shooting is not None:
+        if "H" in best:  # multiple shooting's own normal matrix
             sums = dict(zip(outputs, (float(x) for x in best["ss"])))
             return best["H"], jnp.asarray(sum(sums.values())), sums
         r, J = _jacobian(problem, u, ts_p, obs_p, weights)
