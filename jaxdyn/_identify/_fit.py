@@ -916,42 +916,8 @@ def fit(
         pre_ts, pre_w = jnp.asarray(pre_ts), jnp.asarray(pre_w)
         pre_obs = {k: jnp.asarray(v) for k, v in pre_obs.items()}
 
-    def _run_start(u, horizons=horizons, warm_up=True):
-        if shooting is not None:
-            history, stages, iterations = [], [], 0
-            if warm_up:
-                for h in (0.25, 0.5, 1.0):
-                    t_h = ts[:n_pre][ts[:n_pre] <= ts[0] + h * (ts[n_pre - 1] - ts[0])][-1]
-                    w = jnp.where(pre_ts <= t_h, pre_w, 0.0)
-                    u, _, k, _, hist = polish(problem, u, free, jnp.minimum(pre_ts, t_h),
-                                              pre_obs, w, tol_early, max_iter=max_iter,
-                                              progress=progress)
-                    u = jnp.where(free, u, u0)
-                    history.append(np.asarray(hist)[:int(k)])
-                    stages.append(iterations)
-                    iterations += int(k)
-            # (A refit from an optimum, `warm_up=False`, needs no continuation.)
-            run = shooting.run(problem, u, free_np, tol, max_iter,
-                               _tick if progress else _silent_tick,
-                               stages=None if warm_up else (1.0,))
-            history.append(run["history"])
-            stages.append(iterations)
-            iterations += run["iterations"]
-            if run["converged"]:
-                return {**run, "history": np.concatenate(history), "stages": tuple(stages),
-                        "iterations": iterations}
-            # The segments' defects did not close (an effect whose torque is not smooth in the
-            # state, as a saturating B-dot law): single shooting finishes from multiple
-            # shooting's estimate, which lies in its basin, and says whether it converged.
-            u, loss, k, ok, hist = polish(problem, run["u"], free, ts_p, obs_p, weights, tol_a,
-                                          max_iter=max_iter, progress=progress)
-            u = jnp.where(free, u, u0)
-            history.append(np.asarray(hist)[:int(k)])
-            stages.append(iterations)
-            loss = float(loss)
-            return {"loss": loss if np.isfinite(loss) else np.inf, "u": u,
-                    "converged": bool(ok), "iterations": iterations + int(k),
-                    "history": np.concatenate(history), "stages": tuple(stages)}
+    def _single(u, horizons, warm_up):
+        """Single shooting from `u` over the continuation `horizons`."""
         history, stages, iterations = [], [], 0
         if adam_steps and warm_up:
             u, losses = _adam(problem, u, free, ts_p, obs_p, weights, lr, steps=adam_steps,
@@ -977,6 +943,39 @@ def fit(
         return {"loss": loss if np.isfinite(loss) else np.inf, "u": u, "converged": bool(ok),
                 "iterations": iterations, "history": np.concatenate(history),
                 "stages": tuple(stages)}
+
+    def _multiple(u, warm_up):
+        """Multiple shooting from `u`, after single shooting on the record's start."""
+        history, stages, iterations = [], [], 0
+        if warm_up:
+            for h in (0.25, 0.5, 1.0):
+                t_h = ts[:n_pre][ts[:n_pre] <= ts[0] + h * (ts[n_pre - 1] - ts[0])][-1]
+                w = jnp.where(pre_ts <= t_h, pre_w, 0.0)
+                u, _, k, _, hist = polish(problem, u, free, jnp.minimum(pre_ts, t_h),
+                                          pre_obs, w, tol_early, max_iter=max_iter,
+                                          progress=progress)
+                u = jnp.where(free, u, u0)
+                history.append(np.asarray(hist)[:int(k)])
+                stages.append(iterations)
+                iterations += int(k)
+        # (A refit from an optimum, `warm_up=False`, needs no continuation.)
+        run = shooting.run(problem, u, free_np, tol, max_iter,
+                           _tick if progress else _silent_tick,
+                           stages=None if warm_up else (1.0,))
+        if not run["converged"]:
+            # The segments' defects did not close (an effect whose torque is not smooth in the
+            # state, as a saturating B-dot law): single shooting finishes from multiple
+            # shooting's estimate, which lies in its basin, and says whether it converged.
+            history.append(run["history"])
+            stages.append(iterations)
+            iterations += run["iterations"]
+            run = _single(run["u"], (1.0,), warm_up=False)
+        return {**run, "history": np.concatenate(history + [run["history"]]),
+                "stages": (*stages, *(iterations + s_ for s_ in run["stages"])),
+                "iterations": iterations + run["iterations"]}
+
+    def _run_start(u, horizons=horizons, warm_up=True):
+        return _multiple(u, warm_up) if shooting is not None else _single(u, horizons, warm_up)
 
     runs = []
     bar = None
