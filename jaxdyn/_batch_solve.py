@@ -466,10 +466,11 @@ class _Loop:
             reached = reached & ~hit
             dt_new = jnp.where(hit, h, dt_new)
         elif self.G is not None:
-            # A trajectory whose event fires in this step stays at the step's start, with the
-            # step size in `dt`: the step is taken again after the loop to locate the event, so
-            # the loop carries nothing for it.
-            hit = accept & ~reached & (self.G(p, t_new, y1) <= 0)
+            # A trajectory whose event fires in this step (the one that reaches `t1` too)
+            # stays at the step's start, with the step size in `dt`: the step is taken again
+            # after the loop to locate the event, so the loop carries nothing for it.
+            hit = accept & (self.G(p, t_new, y1) <= 0)
+            reached = reached & ~hit
             dt_new = jnp.where(hit, h, dt_new)
         advance = accept & ~hit
         # Save the states at the save times passed in this step (for a step that ends in an
