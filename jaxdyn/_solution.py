@@ -13,6 +13,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._custom_types import State
 from ._outcome import NAMES, Outcome, SimulationError
+from ._programs import StoredProgram
 from ._scene import Scene
 from ._validation import ParameterError
 
@@ -190,7 +191,7 @@ def _structure_program(name: str, treedef, options, build):
     built once: later calls pass only arrays, so dispatch costs what `jax.jit`'s costs."""
     key = (name, treedef, options)
     if key not in _PROGRAMS:
-        _PROGRAMS[key] = jax.jit(build(treedef))
+        _PROGRAMS[key] = StoredProgram(name, treedef, options, build(treedef))
     return _PROGRAMS[key]
 
 

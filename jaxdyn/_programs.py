@@ -1,0 +1,167 @@
+"""Compiled programs kept between processes: a second `jaxdyn run` skips tracing too.
+
+JAX's persistent compilation cache (`jaxdyn._cache`) skips XLA's compilation in a later
+process, but not the Python tracing and lowering that come before it, which for a diffrax
+program is most of a warm command (0.9 s of tracing and 0.2 s of lowering for the falling
+rod's `simulate`, against 0.25 s to load its compiled code). So where that cache is on, each
+program that jaxdyn builds once per scene structure (`_solution._structure_program`) is also
+kept as a serialised [`jax.export`](https://docs.jax.dev/en/latest/export/export.html)
+module beside it (in `<cache>/jaxdyn-programs`): a later process deserialises it and calls it,
+and JAX compiles it from the persistent cache.
+
+A stored program is used only where its key says it is the same program:
+- the key holds the program's name and static options, the scene's structure (its classes and
+  static fields) and the inputs' shapes and dtypes, the versions of jax, jaxlib, diffrax,
+  equinox, optimistix and lineax, and a hash of jaxdyn's own source;
+- a structure that names anything outside these packages (a class defined in a notebook, a
+  Python function held by an effect) is never stored: its code could change under the same
+  name, so it is traced as usual.
+Nothing is stored or read where the compilation cache is off.
+"""
+
+import copyreg
+import hashlib
+import importlib.metadata
+import os
+import pickle
+import re
+from pathlib import Path
+
+import jax
+import numpy as np
+
+_TRUSTED = ("jaxdyn", "builtins", "diffrax", "equinox", "jax", "jaxlib", "optimistix",
+            "lineax", "collections", "numpy")
+_CLASS = re.compile(r"<class '([\w.]+)'>")
+_DIR = "jaxdyn-programs"
+
+
+def _register_sentinels() -> None:
+    """Unpickle equinox's `MISSING` sentinel (in the auxiliary data of a module's tree
+    definition) as the sentinel itself, so that stored tree definitions compare equal."""
+    try:
+        from equinox._module._flatten import MISSING  # pyright: ignore
+    except ImportError:  # another equinox: tree definitions holding it are not stored
+        return
+    copyreg.pickle(type(MISSING), lambda _: (_missing, ()))
+
+
+def _missing():
+    from equinox._module._flatten import MISSING  # pyright: ignore
+
+    return MISSING
+
+
+_VERSION = None
+
+
+def _version() -> str:
+    """The versions of the libraries a program is built from, and a hash of jaxdyn's source."""
+    global _VERSION
+    if _VERSION is None:
+        h = hashlib.sha256()
+        for lib in ("jax", "jaxlib", "diffrax", "equinox", "optimistix", "lineax"):
+            try:
+                h.update(f"{lib}={importlib.metadata.version(lib)};".encode())
+            except importlib.metadata.PackageNotFoundError:
+                h.update(f"{lib}=?;".encode())
+        root = Path(__file__).parent
+        for path in sorted(root.rglob("*.py")):
+            h.update(str(path.relative_to(root)).encode())
+            h.update(path.read_bytes())
+        _VERSION = h.hexdigest()
+        _register_sentinels()
+    return _VERSION
+
+
+def _directory() -> Path | None:
+    where = jax.config.jax_compilation_cache_dir
+    return Path(where) / _DIR if where else None
+
+
+def _trusted(text: str) -> bool:
+    """Whether a structure's text names only jaxdyn's and its libraries' classes (and no
+    object identified by its address, such as a Python function)."""
+    if " at 0x" in text or "<function" in text or "<lambda>" in text:
+        return False
+    return all(m.split(".")[0] in _TRUSTED for m in _CLASS.findall(text))
+
+
+def _signature(leaves) -> tuple:
+    """The shapes and dtypes of the inputs (what a `jax.jit` program is specialised to)."""
+    return tuple((x.shape, x.dtype, getattr(x, "weak_type", False)) if hasattr(x, "dtype")
+                 else (np.shape(x), np.result_type(x)) for x in leaves)
+
+
+class StoredProgram:
+    """`jax.jit(fn)` for one program, kept on disk per input signature where the compilation
+    cache is on (see the module's docstring). Called with arrays only."""
+
+    def __init__(self, name: str, structure, options, fn):
+        self.fn = fn
+        self.jitted = jax.jit(fn)
+        self.text = f"{name}|{structure}|{options!r}"
+        self.trusted = _trusted(self.text)
+        self.calls: dict = {}
+
+    def __call__(self, *args):
+        leaves, in_tree = jax.tree_util.tree_flatten(args)
+        key = (in_tree, _signature(leaves))
+        call = self.calls.get(key)
+        if call is None:  # decided once per signature in a process
+            call = self.calls[key] = self._load(args, key)
+        return call(*args)
+
+    def _load(self, args, key):
+        """The program for this signature: deserialised from disk, or exported and stored
+        (`jax.jit` alone where the compilation cache is off or the structure untrusted)."""
+        where = _directory() if self.trusted else None
+        if where is None:
+            return self.jitted
+        text = f"{_version()}|{self.text}|{key}|x64={jax.config.jax_enable_x64}|" \
+               f"{jax.default_backend()}"
+        stem = where / hashlib.sha256(text.encode()).hexdigest()
+        try:
+            blob = (stem.with_suffix(".bin")).read_bytes()
+            out_tree = pickle.loads((stem.with_suffix(".tree")).read_bytes())
+            exported = jax.export.deserialize(bytearray(blob))
+        except Exception:  # not stored yet (or unreadable): export it
+            exported, out_tree = self._export(stem, args)
+        if exported is None:
+            return self.jitted
+        program = jax.jit(_named(exported.call, self.fn))
+        return lambda *a: jax.tree_util.tree_unflatten(out_tree, program(*a))
+
+    def _export(self, stem: Path, args):
+        trees = []
+
+        def flat(*a):
+            leaves, tree = jax.tree_util.tree_flatten(self.fn(*a))
+            trees.append(tree)
+            return leaves
+
+        try:
+            exported = jax.export.export(jax.jit(_named(flat, self.fn)))(*args)
+            blob = exported.serialize()
+            tree = pickle.dumps(trees[0])
+            if pickle.loads(tree) != trees[0]:  # a structure that does not survive a pickle
+                return None, None
+        except Exception:  # a program that cannot be exported is traced as usual
+            return None, None
+        stem.parent.mkdir(parents=True, exist_ok=True)
+        for suffix, data in ((".tree", tree), (".bin", blob)):
+            tmp = stem.with_suffix(f"{suffix}.{os.getpid()}.tmp")
+            tmp.write_bytes(data)
+            os.replace(tmp, stem.with_suffix(suffix))  # atomic: concurrent writers agree
+        # Called as a later process will call it (serialising drops weak types, so the
+        # programs that take its outputs are the same in both).
+        return jax.export.deserialize(bytearray(blob)), trees[0]
+
+
+def _named(fn, like):
+    """`fn` under the name of `like` (JAX's logs and caches name a program after it)."""
+    def program(*args):
+        return fn(*args)
+
+    program.__name__ = program.__qualname__ = getattr(like, "__name__", "program")
+    return program

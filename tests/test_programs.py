@@ -1,0 +1,75 @@
+"""Programs kept on disk between processes (`jaxdyn._programs`): a later process reads the
+program instead of tracing it, gets the same numbers, and nothing is stored that could be
+stale (a structure naming code outside jaxdyn and its libraries)."""
+
+import jax
+import numpy as np
+import pytest
+
+import jaxdyn as jd
+from jaxdyn import _programs
+from jaxdyn._simulate import simulate_unchecked
+
+SCENE = jd.Scene(jd.FallingRod(length=1.3, mass=2.0, g=9.81))
+
+
+def _program(calls, options=()):
+    """The falling rod's simulation as a stored program; `calls` counts its tracings."""
+    leaves, treedef = jax.tree_util.tree_flatten(SCENE)
+
+    def simulate_program(leaves, y0, t1):
+        calls.append(1)
+        scene = jax.tree_util.tree_unflatten(treedef, leaves)
+        traj = simulate_unchecked(scene, y0, t1)
+        return traj.t_final, traj.y_final, traj.event, traj.result
+
+    return _programs.StoredProgram("test-simulate", treedef, options, simulate_program), leaves
+
+
+@pytest.fixture
+def stored(tmp_path, monkeypatch):
+    monkeypatch.setattr(_programs, "_directory", lambda: tmp_path)
+    return tmp_path
+
+
+def test_a_later_process_reads_the_program_instead_of_tracing_it(stored):
+    y0 = SCENE.state(theta=0.2)
+    calls = []
+    first, leaves = _program(calls)
+    out = first(leaves, y0, np.asarray(5.0))
+    assert calls == [1] and len(list(stored.glob("*.bin"))) == 1
+    # A new program object for the same structure (as in a new process): read, not traced.
+    again, _ = _program(calls)
+    out2 = again(leaves, y0, np.asarray(5.0))
+    assert calls == [1]
+    assert jax.tree.structure(out2) == jax.tree.structure(out)
+    for a, b in zip(jax.tree.leaves(out), jax.tree.leaves(out2)):
+        np.testing.assert_array_equal(a, b)
+    # Independent route: the fall time from the energy integral.
+    fall = float(SCENE.body.fall_time(0.2, 0.0))
+    assert abs(float(out2[0]) - fall) < 1e-7 * fall and bool(out2[2]["flat"])
+    # Other inputs of the same shapes reuse it; other static options are another program.
+    out3 = again(leaves, SCENE.state(theta=0.4), np.asarray(5.0))
+    assert calls == [1] and float(out3[0]) < float(out[0])
+    other, _ = _program(calls, options=("another",))
+    other(leaves, y0, np.asarray(5.0))
+    assert calls == [1, 1] and len(list(stored.glob("*.bin"))) == 2
+
+
+def test_structures_naming_outside_code_are_never_stored(stored):
+    assert _programs._trusted(str(jax.tree_util.tree_structure(SCENE)))
+    assert not _programs._trusted("PyTreeDef(CustomNode(MyBody[(<class '__main__.Law'>,)]))")
+    assert not _programs._trusted("PyTreeDef(CustomNode(Torque[(<function f at 0x7f00>,)]))")
+    calls = []
+    program, leaves = _program(calls)
+    program.trusted = False  # as for such a structure
+    program(leaves, SCENE.state(theta=0.2), np.asarray(5.0))
+    assert calls == [1] and not list(stored.iterdir())
+
+
+def test_without_the_compilation_cache_nothing_is_written(monkeypatch, tmp_path):
+    monkeypatch.setattr(_programs, "_directory", lambda: None)
+    calls = []
+    program, leaves = _program(calls)
+    program(leaves, SCENE.state(theta=0.2), np.asarray(5.0))
+    assert calls == [1] and not list(tmp_path.iterdir())
