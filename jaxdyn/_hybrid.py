@@ -20,7 +20,7 @@ one traced computation: it compiles once, parameters stay array leaves, and `jax
 segments (those after the end are skipped by `lax.cond`), so `jax.grad` works too, through the
 event times by the implicit function theorem in the root finder. With `dense=True` a switching
 run is a `lax.while_loop` (no iterations after the end), which JAX cannot differentiate in
-reverse mode; its segments write their accepted steps into one table (`Recorded`).
+reverse mode; its segments write their accepted steps into one table (`Table`).
 
 **Event location, one method for every scene.** The events are watched as one condition, their
 minimum, so that the root finder locates the *earliest* zero crossing of any of them (diffrax,
@@ -49,8 +49,9 @@ import optimistix as optx
 
 from ._outcome import MESSAGES, Outcome, from_diffrax, is_success
 from ._solution import MergedInterpolation, Trajectory, too_many_switches
-from ._solvers._recorded import Recorded, empty_table
-from ._solvers._sampled import Sampled
+from ._solvers._accepted import Reporting, Writing
+from ._solvers._recorded import Table, empty_table
+from ._solvers._sampled import Samples
 from ._tolerance import ScaledPIDController
 
 # Stands in for the events of the other group in each condition's minimum.
@@ -150,11 +151,11 @@ class _Run:
         self.adjoint, self.meter, self.watch = adjoint, meter, watch
         self.term = dfx.ODETerm(scene.vector_field)
         self.segments = scene.max_switches + 1 if watch is not None else 1
-        # Several segments keep their dense output in one table (`Recorded`); one keeps
+        # Several segments keep their dense output in one table (`Table`); one keeps
         # diffrax's own.
         self.record = dense and self.segments > 1
         self.diffrax_dense = dense and not self.record
-        # Sample times saved by the solver itself (`Sampled`): `SaveAt(ts)` of traced times
+        # Sample times saved from each accepted step (`Samples`): `SaveAt(ts)` of traced times
         # carries diffrax's runtime check of them, a host callback. (Not for implicit solvers:
         # diffrax reads their root finder, which the wrapper hides.)
         self.sampled = (solver_saves and ts is not None
@@ -188,32 +189,38 @@ class _Run:
         """`diffrax.diffeqsolve` over one segment from the carry's time and state; the segment's
         end, its samples (and which are valid), its dense table."""
         t_s, y_s, ts = c["t"], c["y"], self.ts
-        solver = Recorded(self.solver, c["table"]) if self.record else self.solver
-        subs = [dfx.SubSaveAt(t1=True)]
-        if self.sampled:
-            solver = Sampled(solver, ts)
-        elif ts is not None:
-            subs.insert(0, dfx.SubSaveAt(ts=jnp.clip(ts, t_s, t_stop)))
-        controller = self.controller
+        solver, controller = self.solver, self.controller
         if isinstance(controller, ScaledPIDController):  # error control in the segment's own
             controller = controller.bind(self.scene, t_s, t_stop, y_s)  # natural scales
+        # Written from each accepted step into buffers in the controller's state (see
+        # `_accepted`): the samples at `ts`, the dense table.
+        writers = {}
+        subs = [dfx.SubSaveAt(t1=True)]
+        if self.sampled:
+            writers["samples"] = Samples(ts)
+        elif ts is not None:
+            subs.insert(0, dfx.SubSaveAt(ts=jnp.clip(ts, t_s, t_stop)))
+        if self.record:
+            writers["table"] = Table(c["table"])
+        if writers:
+            controller = Writing(controller, writers, solver.interpolation_cls)
+            solver = Reporting(solver)
         sol = dfx.diffeqsolve(
             self.term, solver, t_s, t_stop, self.dt0, y_s,
             args=self.scene,  # solvers that exploit the scene's structure (splittings) read it
             saveat=dfx.SaveAt(subs=subs, dense=self.diffrax_dense,
-                              solver_state=self.sampled or self.record),
+                              controller_state=bool(writers)),
             stepsize_controller=controller, max_steps=self.max_steps, adjoint=self.adjoint,
             event=None if self.watch is None else self.watch.event(t_s, y_s),
             progress_meter=self.meter, throw=False,
         )
-        state, saved, valid, table = sol.solver_state, None, True, None
+        written = sol.controller_state[1] if writers else {}
+        saved, valid, table = None, True, written.get("table")
         if self.sampled:
-            state, saved, reached = state
+            saved, reached = written["samples"]
             valid = jnp.arange(ts.size) < reached
         elif ts is not None:
             saved = sol.ys[0]
-        if self.record:
-            table = state[1]
         return sol, saved, valid, table
 
     def segment(self, c):
@@ -330,7 +337,8 @@ def integrate(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps, adjo
               dense, events, checks, solver_saves) -> Trajectory:
     """A run of `scene` from `y0` (traced inside `simulate`'s program): every segment between
     switches, then its `Trajectory`. `checks=False` leaves failures in `Trajectory.outcome`;
-    `solver_saves`: the solver saves at `ts` (see `Sampled`), not diffrax's `SaveAt(ts)`."""
+    `solver_saves`: `ts` saved from each accepted step (see `Samples`), not by diffrax's
+    `SaveAt(ts)`."""
     if checks:
         y0 = scene.check(y0)
     if isinstance(controller, ScaledPIDController):
