@@ -28,10 +28,11 @@ class Table(eqx.Module):
         return self.table
 
     def write(self, table, t0, t1, dense_info, interpolation, keep):
-        at = table["rows"]
+        rows = table["t_lo"].size
+        at, fits = jnp.minimum(table["rows"], rows - 1), table["rows"] < rows
 
-        def put(a, b):  # element by element, so that the table is updated in place
-            return a.at[at].set(jnp.where(keep, b, a[at]))
+        def put(a, b):  # one row, in place (a full table keeps its rows)
+            return jax.lax.dynamic_update_index_in_dim(a, jnp.where(keep & fits, b, a[at]), at, 0)
 
         return {
             "t_lo": put(table["t_lo"], t0),
