@@ -119,6 +119,23 @@ def _median_us(fn, repeats):
     return statistics.median(times) * 1e6
 
 
+def _free_body():
+    """The free body of `calls` and `samples` (float64 enabled first): its inertia, scene,
+    initial state, and Euler's equations written out for the hand-written programs."""
+    import jax.numpy as jnp
+
+    import jaxdyn as jd
+
+    inertia = jnp.array([1.0, 2.0, 3.0])
+    scene = jd.Scene(jd.RigidBody(inertia))
+
+    def euler(t, w, i):
+        return jnp.stack([(i[1] - i[2]) / i[0] * w[1] * w[2], (i[2] - i[0]) / i[1] * w[2] * w[0],
+                          (i[0] - i[1]) / i[2] * w[0] * w[1]])
+
+    return inertia, scene, scene.state(omega=[0.3, 1.0, 0.2]), euler
+
+
 def calls(repeats):
     import diffrax as dfx
     import jax
@@ -133,14 +150,7 @@ def calls(repeats):
     rtol, atol = 1e-8, 1e-10
     out = {}
 
-    # Free body.
-    inertia = jnp.array([1.0, 2.0, 3.0])
-    scene = jd.Scene(jd.RigidBody(inertia))
-    y0 = scene.state(omega=[0.3, 1.0, 0.2])
-
-    def euler(t, w, i):
-        return jnp.stack([(i[1] - i[2]) / i[0] * w[1] * w[2], (i[2] - i[0]) / i[1] * w[2] * w[0],
-                          (i[0] - i[1]) / i[2] * w[0] * w[1]])
+    inertia, scene, y0, euler = _free_body()
 
     @jax.jit
     def hand_free(w0, i, t1):
@@ -217,15 +227,9 @@ def samples(quick):
 
     jax.config.update("jax_enable_x64", True)
     rtol, t1 = 1e-8, 100.0
-    inertia = jnp.array([1.0, 2.0, 3.0])
-    scene = jd.Scene(jd.RigidBody(inertia))
-    y0 = scene.state(omega=[0.3, 1.0, 0.2])
+    inertia, scene, y0, euler = _free_body()
 
-    def euler(t, w, i):
-        return jnp.stack([(i[1] - i[2]) / i[0] * w[1] * w[2], (i[2] - i[0]) / i[1] * w[2] * w[0],
-                          (i[0] - i[1]) / i[2] * w[0] * w[1]])
-
-    class BufferInSolverState(AbstractDelegatingSolver):  # jaxdyn's `Sampled` before 6d3d62c+1
+    class BufferInSolverState(AbstractDelegatingSolver):  # jaxdyn's `Sampled` at 6d3d62c
         solver: dfx.AbstractSolver
         ts: jax.Array
 
