@@ -12,6 +12,11 @@
   rod (with its impact event); the call against jaxdyn's own compiled program; a derived
   output (`traj.omega`, `traj.normal_force`) against its compiled program. Medians of repeats;
   the steps and the final states of both are compared.
+- **Samples**: `jd.simulate(..., ts=...)` of the free body over 100 s (about 1000 steps)
+  against the number of sample times (1e2 to 1e5; 1e6 without `--quick`), after compilation,
+  against a hand-written `jax.jit(diffeqsolve)` with diffrax's `SaveAt(ts)` and against the
+  way jaxdyn saved before (the sample buffer in the solver state, which diffrax copies at
+  every step: `O(samples x steps)`; up to 1e4 samples), in the same process.
 
 Prints one JSON object. Run: `python benchmarks/latency.py [--quick]`.
 """
@@ -114,6 +119,23 @@ def _median_us(fn, repeats):
     return statistics.median(times) * 1e6
 
 
+def _free_body():
+    """The free body of `calls` and `samples` (float64 enabled first): its inertia, scene,
+    initial state, and Euler's equations written out for the hand-written programs."""
+    import jax.numpy as jnp
+
+    import jaxdyn as jd
+
+    inertia = jnp.array([1.0, 2.0, 3.0])
+    scene = jd.Scene(jd.RigidBody(inertia))
+
+    def euler(t, w, i):
+        return jnp.stack([(i[1] - i[2]) / i[0] * w[1] * w[2], (i[2] - i[0]) / i[1] * w[2] * w[0],
+                          (i[0] - i[1]) / i[2] * w[0] * w[1]])
+
+    return inertia, scene, scene.state(omega=[0.3, 1.0, 0.2]), euler
+
+
 def calls(repeats):
     import diffrax as dfx
     import jax
@@ -128,14 +150,7 @@ def calls(repeats):
     rtol, atol = 1e-8, 1e-10
     out = {}
 
-    # Free body.
-    inertia = jnp.array([1.0, 2.0, 3.0])
-    scene = jd.Scene(jd.RigidBody(inertia))
-    y0 = scene.state(omega=[0.3, 1.0, 0.2])
-
-    def euler(t, w, i):
-        return jnp.stack([(i[1] - i[2]) / i[0] * w[1] * w[2], (i[2] - i[0]) / i[1] * w[2] * w[0],
-                          (i[0] - i[1]) / i[2] * w[0] * w[1]])
+    inertia, scene, y0, euler = _free_body()
 
     @jax.jit
     def hand_free(w0, i, t1):
@@ -201,17 +216,91 @@ def calls(repeats):
     return out
 
 
+def samples(quick):
+    import diffrax as dfx
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    import jaxdyn as jd
+    from jaxdyn._solvers._wrapped import AbstractDelegatingSolver
+
+    jax.config.update("jax_enable_x64", True)
+    rtol, t1 = 1e-8, 100.0
+    inertia, scene, y0, euler = _free_body()
+
+    class BufferInSolverState(AbstractDelegatingSolver):  # jaxdyn's `Sampled` at 6d3d62c
+        solver: dfx.AbstractSolver
+        ts: jax.Array
+
+        def init(self, terms, t0, t1, y0, args):
+            ys = jnp.full(self.ts.shape + y0.shape, jnp.inf)
+            return self.solver.init(terms, t0, t1, y0, args), ys, jnp.asarray(0)
+
+        def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
+            inner, ys, index = solver_state
+            y1, err, info, inner, result = self.solver.step(terms, t0, t1, y0, args, inner,
+                                                            made_jump)
+            interp = self.solver.interpolation_cls(t0=t0, t1=t1, **info)
+            ts, n = self.ts, self.ts.size
+            ys, index = jax.lax.while_loop(
+                lambda c: (c[1] < n) & (ts[jnp.minimum(c[1], n - 1)] <= t1),
+                lambda c: (c[0].at[c[1]].set(interp.evaluate(ts[c[1]])), c[1] + 1), (ys, index))
+            return y1, err, info, (inner, ys, index), result
+
+    controller = dfx.PIDController(rtol=rtol, atol=1e-10)
+
+    @jax.jit
+    def hand_saveat(w0, ts):
+        return dfx.diffeqsolve(dfx.ODETerm(euler), dfx.Tsit5(), 0.0, t1, None, w0, args=inertia,
+                               stepsize_controller=controller, saveat=dfx.SaveAt(ts=ts),
+                               max_steps=100_000).ys
+
+    @jax.jit
+    def hand_before(w0, ts):
+        sol = dfx.diffeqsolve(dfx.ODETerm(euler), BufferInSolverState(dfx.Tsit5(), ts), 0.0, t1,
+                              None, w0, args=inertia, stepsize_controller=controller,
+                              saveat=dfx.SaveAt(solver_state=True), max_steps=100_000)
+        return sol.solver_state[1]
+
+    out = {}
+    sizes = [100, 1_000, 10_000, 100_000] + ([] if quick else [1_000_000])
+    for n in sizes:
+        ts = np.linspace(0.0, t1, n)
+        repeats = 20 if n <= 10_000 else 5
+        t0 = time.perf_counter()
+        traj = jd.simulate(scene, y0, t1, ts=ts, rtol=rtol)
+        first = time.perf_counter() - t0
+        row = {"simulate_ms": _median_us(lambda: jd.simulate(scene, y0, t1, ts=ts, rtol=rtol).ys,
+                                         repeats) / 1e3,
+               "first_call_s": first, "steps": int(traj.stats["num_steps"]),
+               "hand_saveat_ms": _median_us(lambda: hand_saveat(y0["omega"], ts), repeats) / 1e3}
+        row["simulate_over_hand_saveat"] = row["simulate_ms"] / row["hand_saveat_ms"]
+        if n <= 10_000:
+            row["before_ms"] = _median_us(lambda: hand_before(y0["omega"], ts), repeats) / 1e3
+            row["before_over_simulate"] = row["before_ms"] / row["simulate_ms"]
+        out[str(n)] = row
+    return out
+
+
 def main():
-    parser = argparse.ArgumentParser()
-    parser.add_argument("--quick", action="store_true")
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--quick", action="store_true",
+                        help="fewer repeats, the quick commands, samples up to 1e5")
+    parser.add_argument("--only", choices=("imports", "commands", "calls", "samples"),
+                        help="one section alone")
     args = parser.parse_args()
     t0 = time.perf_counter()
-    result = {
-        "machine": {"cpus": os.cpu_count(), "python": platform.python_version()},
-        "imports": imports(3 if args.quick else 7),
-        "commands": commands(args.quick),
-        "calls": calls(100 if args.quick else 500),
+    sections = {
+        "imports": lambda: imports(3 if args.quick else 7),
+        "commands": lambda: commands(args.quick),
+        "calls": lambda: calls(100 if args.quick else 500),
+        "samples": lambda: samples(args.quick),
     }
+    result = {"machine": {"cpus": os.cpu_count(), "python": platform.python_version()}}
+    for name, section in sections.items():
+        if args.only in (None, name):
+            result[name] = section()
     result["wall_s"] = time.perf_counter() - t0
     print(json.dumps(result, indent=2))
 

@@ -20,7 +20,7 @@ one traced computation: it compiles once, parameters stay array leaves, and `jax
 segments (those after the end are skipped by `lax.cond`), so `jax.grad` works too, through the
 event times by the implicit function theorem in the root finder. With `dense=True` a switching
 run is a `lax.while_loop` (no iterations after the end), which JAX cannot differentiate in
-reverse mode; its segments write their accepted steps into one table (`Recorded`).
+reverse mode; its segments write their accepted steps into one table (`Table`).
 
 **Event location, one method for every scene.** The events are watched as one condition, their
 minimum, so that the root finder locates the *earliest* zero crossing of any of them (diffrax,
@@ -49,8 +49,9 @@ import optimistix as optx
 
 from ._outcome import MESSAGES, Outcome, from_diffrax, is_success
 from ._solution import MergedInterpolation, Trajectory, too_many_switches
-from ._solvers._recorded import Recorded, empty_table
-from ._solvers._sampled import Sampled
+from ._solvers._accepted import Reporting, Writing
+from ._solvers._recorded import Table, empty_table
+from ._solvers._sampled import Samples
 from ._tolerance import ScaledPIDController
 
 # Stands in for the events of the other group in each condition's minimum.
@@ -150,15 +151,17 @@ class _Run:
         self.adjoint, self.meter, self.watch = adjoint, meter, watch
         self.term = dfx.ODETerm(scene.vector_field)
         self.segments = scene.max_switches + 1 if watch is not None else 1
-        # Several segments keep their dense output in one table (`Recorded`); one keeps
+        # Several segments keep their dense output in one table (`Table`); one keeps
         # diffrax's own.
         self.record = dense and self.segments > 1
         self.diffrax_dense = dense and not self.record
-        # Sample times saved by the solver itself (`Sampled`): `SaveAt(ts)` of traced times
+        # Sample times saved from each accepted step (`Samples`): `SaveAt(ts)` of traced times
         # carries diffrax's runtime check of them, a host callback. (Not for implicit solvers:
         # diffrax reads their root finder, which the wrapper hides.)
         self.sampled = (solver_saves and ts is not None
                         and not isinstance(solver, dfx.AbstractImplicitSolver))
+        if self.sampled:
+            self.ts_padded = Samples.pad(ts)
         if (self.sampled and isinstance(adjoint, dfx.ForwardMode)
                 and getattr(solver, "scan_kind", "") is None):
             # What diffrax does for forward mode, done before wrapping (it cannot see inside).
@@ -176,7 +179,10 @@ class _Run:
         c = {"t": self.t0, "y": y, "done": stop, "ended_by": ended_by, "switches": zero,
              "steps": zero, "accepted": zero, "rejected": zero,
              "result": dfx.RESULTS.successful}
-        if self.ts is not None:
+        if self.sampled:  # one buffer for the whole run, written in place (`Samples`)
+            c["ys"], index = Samples(self.ts_padded).start(self.t0, y)
+            c["index"] = jnp.where(stop, 0, index)  # (a run that ends at once saves nothing)
+        elif self.ts is not None:
             c["ts_taken"] = jnp.zeros(self.ts.shape, bool)
             c["ys"] = jax.tree.map(lambda a: jnp.zeros(self.ts.shape + a.shape, a.dtype), y)
         if self.record:
@@ -186,40 +192,41 @@ class _Run:
 
     def solve(self, c, t_stop):
         """`diffrax.diffeqsolve` over one segment from the carry's time and state; the segment's
-        end, its samples (and which are valid), its dense table."""
+        end, its samples (`Samples`' buffer and count, or diffrax's), its dense table."""
         t_s, y_s, ts = c["t"], c["y"], self.ts
-        solver = Recorded(self.solver, c["table"]) if self.record else self.solver
-        subs = [dfx.SubSaveAt(t1=True)]
-        if self.sampled:
-            solver = Sampled(solver, ts)
-        elif ts is not None:
-            subs.insert(0, dfx.SubSaveAt(ts=jnp.clip(ts, t_s, t_stop)))
-        controller = self.controller
+        solver, controller = self.solver, self.controller
         if isinstance(controller, ScaledPIDController):  # error control in the segment's own
             controller = controller.bind(self.scene, t_s, t_stop, y_s)  # natural scales
+        # Written from each accepted step into buffers in the controller's state (see
+        # `_accepted`): the samples at `ts`, the dense table.
+        writers = {}
+        subs = [dfx.SubSaveAt(t1=True)]
+        if self.sampled:
+            writers["samples"] = Samples(self.ts_padded, c["ys"], c["index"])
+        elif ts is not None:
+            subs.insert(0, dfx.SubSaveAt(ts=jnp.clip(ts, t_s, t_stop)))
+        if self.record:
+            writers["table"] = Table(c["table"])
+        if writers:
+            controller = Writing(controller, writers, solver.interpolation_cls)
+            solver = Reporting(solver)
         sol = dfx.diffeqsolve(
             self.term, solver, t_s, t_stop, self.dt0, y_s,
             args=self.scene,  # solvers that exploit the scene's structure (splittings) read it
             saveat=dfx.SaveAt(subs=subs, dense=self.diffrax_dense,
-                              solver_state=self.sampled or self.record),
+                              controller_state=bool(writers)),
             stepsize_controller=controller, max_steps=self.max_steps, adjoint=self.adjoint,
             event=None if self.watch is None else self.watch.event(t_s, y_s),
             progress_meter=self.meter, throw=False,
         )
-        state, saved, valid, table = sol.solver_state, None, True, None
-        if self.sampled:
-            state, saved, reached = state
-            valid = jnp.arange(ts.size) < reached
-        elif ts is not None:
-            saved = sol.ys[0]
-        if self.record:
-            table = state[1]
-        return sol, saved, valid, table
+        written = sol.controller_state[1] if writers else {}
+        saved = written["samples"] if self.sampled else None if ts is None else sol.ys[0]
+        return sol, saved, written.get("table")
 
     def segment(self, c):
         """One segment: integrate to the next event (or `t1`), switch, save, count."""
         live = ~c["done"]  # False only for batch members that ended, under `vmap`
-        sol, saved, valid, table = self.solve(c, jnp.where(live, self.t1, c["t"]))
+        sol, saved, table = self.solve(c, jnp.where(live, self.t1, c["t"]))
         t_e = sol.ts[-1][0]
         y_e = jax.tree.map(lambda a: a[0], sol.ys[-1])
         ok = (sol.result == dfx.RESULTS.successful) | (sol.result == dfx.RESULTS.event_occurred)
@@ -235,8 +242,14 @@ class _Run:
                           ("rejected", "num_rejected_steps")):
             new[key] = c[key] + jnp.where(live, sol.stats[stat], 0).astype(c[key].dtype)
         new["result"] = dfx.RESULTS.where(live & ~ok, sol.result, c["result"])
-        if self.ts is not None:
-            take = live & ~c["ts_taken"] & (self.ts <= t_e) & valid
+        if self.sampled:
+            # Samples past the end, written from the last step (past an event), are not kept:
+            # the next segment writes over them.
+            new["ys"], reached = saved
+            end = jnp.searchsorted(self.ts, t_e, side="right").astype(reached.dtype)
+            new["index"] = jnp.minimum(reached, end)
+        elif self.ts is not None:
+            take = live & ~c["ts_taken"] & (self.ts <= t_e)
             new["ts_taken"] = c["ts_taken"] | take
             new["ys"] = jax.tree.map(lambda acc, seg: jnp.where(_expand(take, acc), seg, acc),
                                      c["ys"], saved)
@@ -254,9 +267,10 @@ class _Run:
             if self.diffrax_dense:  # (its interpolation exists only once the segment ran)
                 return self.segment(c)
             return jax.lax.cond(c["done"], lambda c: c, self.segment, c)
-        if self.record:
-            # A while loop: no iterations after the end, and the dense table is updated in
-            # place. JAX cannot reverse-mode differentiate it: gradients need dense=False.
+        if self.record or self.sampled:
+            # A while loop: no iterations after the end, and the dense table and the samples
+            # are updated in place. JAX cannot reverse-mode differentiate it: gradients need
+            # dense=False (the samples are written thus only where none are taken).
             def step(c):
                 return {**self.segment(c), "n": c["n"] + 1}
 
@@ -298,9 +312,13 @@ class _Run:
             ts_out = jnp.stack([self.t0, t_final])
             ys_out = jax.tree.map(lambda a, b: jnp.stack([a, b]), y_start, y_final)
         else:
-            taken = c["ts_taken"]
+            if self.sampled:  # (its buffer has `BLOCK` rows of padding)
+                taken = jnp.arange(self.ts.size) < c["index"]
+                ys = jax.tree.map(lambda a: a[:self.ts.size], c["ys"])
+            else:
+                taken, ys = c["ts_taken"], c["ys"]
             ts_out = jnp.where(taken, self.ts, jnp.inf)
-            ys_out = jax.tree.map(lambda a: jnp.where(_expand(taken, a), a, jnp.inf), c["ys"])
+            ys_out = jax.tree.map(lambda a: jnp.where(_expand(taken, a), a, jnp.inf), ys)
         stats = {"num_steps": c["steps"], "num_accepted_steps": c["accepted"],
                  "num_rejected_steps": c["rejected"], "max_steps": self.max_steps}
         if self.segments > 1:
@@ -330,7 +348,8 @@ def integrate(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps, adjo
               dense, events, checks, solver_saves) -> Trajectory:
     """A run of `scene` from `y0` (traced inside `simulate`'s program): every segment between
     switches, then its `Trajectory`. `checks=False` leaves failures in `Trajectory.outcome`;
-    `solver_saves`: the solver saves at `ts` (see `Sampled`), not diffrax's `SaveAt(ts)`."""
+    `solver_saves`: `ts` saved from each accepted step (see `Samples`), not by diffrax's
+    `SaveAt(ts)`."""
     if checks:
         y0 = scene.check(y0)
     if isinstance(controller, ScaledPIDController):

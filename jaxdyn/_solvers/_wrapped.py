@@ -4,8 +4,8 @@ import diffrax as dfx
 
 
 class AbstractDelegatingSolver(dfx.AbstractWrappedSolver):
-    """The wrapped solver's properties and orders, for wrappers that add to its solver state
-    (`Sampled`, `Recorded`). Subclasses declare the field `solver` and override `init` and
+    """The wrapped solver's properties and orders, for wrappers that add to what its steps
+    return (`Reporting`). Subclasses declare the field `solver` and override `init` and
     `step`."""
 
     @property
