@@ -123,39 +123,54 @@ class StoredProgram:
         stem = where / hashlib.sha256(text.encode()).hexdigest()
         try:
             blob = (stem.with_suffix(".bin")).read_bytes()
-            out_tree = pickle.loads((stem.with_suffix(".tree")).read_bytes())
+            out_tree, weak = pickle.loads((stem.with_suffix(".tree")).read_bytes())
             exported = jax.export.deserialize(bytearray(blob))
         except Exception:  # not stored yet (or unreadable): export it
-            exported, out_tree = self._export(stem, args)
+            exported, out_tree, weak = self._export(stem, args)
         if exported is None:
             return self.jitted
-        program = jax.jit(_named(exported.call, self.fn))
+
+        def call(*args):  # serialising drops weak types: given back as traced
+            outs = exported.call(*args)
+            return [_weakly_typed(x) if w else x for x, w in zip(outs, weak)]
+
+        program = jax.jit(_named(call, self.fn))
         return lambda *a: jax.tree_util.tree_unflatten(out_tree, program(*a))
 
     def _export(self, stem: Path, args):
-        trees = []
+        found = []
 
         def flat(*a):
             leaves, tree = jax.tree_util.tree_flatten(self.fn(*a))
-            trees.append(tree)
+            found.append((tree, [bool(getattr(jax.typeof(x), "weak_type", False))
+                                 for x in leaves]))
             return leaves
 
         try:
             exported = jax.export.export(jax.jit(_named(flat, self.fn)))(*args)
             blob = exported.serialize()
-            tree = pickle.dumps(trees[0])
-            if pickle.loads(tree) != trees[0]:  # a structure that does not survive a pickle
-                return None, None
+            tree = pickle.dumps(found[0])
+            if pickle.loads(tree) != found[0]:  # a structure that does not survive a pickle
+                return None, None, None
+            if any(found[0][1]):
+                _weakly_typed(np.zeros(()))
         except Exception:  # a program that cannot be exported is traced as usual
-            return None, None
+            return None, None, None
         stem.parent.mkdir(parents=True, exist_ok=True)
         for suffix, data in ((".tree", tree), (".bin", blob)):
             tmp = stem.with_suffix(f"{suffix}.{os.getpid()}.tmp")
             tmp.write_bytes(data)
             os.replace(tmp, stem.with_suffix(suffix))  # atomic: concurrent writers agree
-        # Called as a later process will call it (serialising drops weak types, so the
-        # programs that take its outputs are the same in both).
-        return jax.export.deserialize(bytearray(blob)), trees[0]
+        # Called as a later process will call it, from its serialised form.
+        return jax.export.deserialize(bytearray(blob)), *found[0]
+
+
+def _weakly_typed(x):
+    """`x` as a weakly typed value (as a Python scalar in a program is): JAX's own
+    conversion, private; where it is missing, programs with such outputs are not stored."""
+    from jax._src.lax.lax import _convert_element_type  # pyright: ignore
+
+    return _convert_element_type(x, weak_type=True)
 
 
 def _named(fn, like):

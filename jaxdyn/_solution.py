@@ -154,10 +154,16 @@ class Trajectory(eqx.Module):
         )
 
 
-@eqx.filter_jit
 def _summary(traj: Trajectory) -> dict[str, Any]:
+    return _trajectory_program("summary", _summary_of, _summary_filtered, traj)
+
+
+def _summary_of(traj: Trajectory) -> dict[str, Any]:
     return traj.scene.summary(traj.ts, traj.ys, traj.valid, traj.t_final, traj.y_final,
                               traj.event)
+
+
+_summary_filtered = eqx.filter_jit(_summary_of)
 
 
 def _to_python(x):
@@ -168,12 +174,18 @@ def _to_python(x):
     return [_to_python(v) for v in a]
 
 
-@eqx.filter_jit
 def _resample(traj: Trajectory, num: int) -> Trajectory:
+    return _trajectory_program("resample", _resample_of, _resample_filtered, traj, num)
+
+
+def _resample_of(traj: Trajectory, num: int) -> Trajectory:
     t0 = traj.interpolation.t0
     ts = jnp.linspace(t0, traj.t_final, num)
     ys = jax.vmap(traj.interpolation.evaluate)(ts)
     return eqx.tree_at(lambda tr: (tr.ts, tr.ys), traj, (ts, ys))
+
+
+_resample_filtered = eqx.filter_jit(_resample_of)  # (`num`, a Python int, is static)
 
 
 _PROGRAMS: dict = {}  # jax.jit programs by (name, scene structure, options)
@@ -193,6 +205,24 @@ def _structure_program(name: str, treedef, options, build):
     if key not in _PROGRAMS:
         _PROGRAMS[key] = StoredProgram(name, treedef, options, build(treedef))
     return _PROGRAMS[key]
+
+
+def _trajectory_program(name: str, fn, filtered, traj: Trajectory, *static):
+    """`fn(traj, *static)` as one program per trajectory structure (and static values), called
+    with the trajectory's arrays (`filtered`, equinox's filtered `fn`, where it holds anything
+    else)."""
+    leaves, treedef = jax.tree_util.tree_flatten(traj)
+    if not _concrete_arrays(*leaves):
+        return filtered(traj, *static)
+
+    def build(treedef):
+        def program(leaves):
+            return fn(jax.tree_util.tree_unflatten(treedef, leaves), *static)
+
+        program.__name__ = program.__qualname__ = name
+        return program
+
+    return _structure_program(name, treedef, static, build)(leaves)
 
 
 def _outputs(scene: Scene, ts, ys) -> dict[str, Array]:

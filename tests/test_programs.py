@@ -73,3 +73,17 @@ def test_without_the_compilation_cache_nothing_is_written(monkeypatch, tmp_path)
     program, leaves = _program(calls)
     program(leaves, SCENE.state(theta=0.2), np.asarray(5.0))
     assert calls == [1] and not list(tmp_path.iterdir())
+
+
+def test_weak_types_survive_the_disk(stored):
+    """A weakly typed output (a Python scalar in the program, as diffrax's interpolation's
+    direction) comes back weakly typed, so that strict promotion accepts it as before."""
+    def program(x):
+        return {"x": 2 * x, "sign": jax.numpy.where(x[0] > 0, 1, -1)}
+
+    for _ in range(2):  # exported and stored, then read
+        out = _programs.StoredProgram("test-weak", "weak", (), program)(np.ones(3))
+        assert jax.typeof(out["sign"]).weak_type and not jax.typeof(out["x"]).weak_type
+    assert len(list(stored.glob("*.bin"))) == 1
+    with jax.numpy_dtype_promotion("strict"):
+        assert float(out["sign"] * np.float64(2.5)) == 2.5
