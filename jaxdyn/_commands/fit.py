@@ -294,6 +294,7 @@ def run(args) -> int:
             "principal_moments": _number(v["inertia.principal_moments"]),
             "principal_axes": _number(v["inertia.principal_axes"]),
             "std": _number(s["inertia.principal_moments"]),
+            "principal_axes_std": _number(s["inertia.principal_axes"]),
             "scale_identified": scale,
         })
         if scale:
@@ -326,6 +327,10 @@ def run(args) -> int:
     out["identifiable"] = result.identifiable
     out["not_identifiable"] = [c for c, ok in result.identifiable.items() if not ok]
     out["notes"] = list(result.notes)
+    if "inertia" in parameters and result.identifiable["inertia.scale"]:
+        out["notes"].append("inertia.scale is determined by the data: known torques or "
+                            "momenta in the scene (commanded motor torques, wheel momenta) "
+                            "fix the absolute inertia, reported in kg m^2")
     out["converged"] = result.converged
     out["iterations"] = result.iterations
     out["starts"] = int(result.restart_losses.size)

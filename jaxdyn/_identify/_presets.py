@@ -6,8 +6,8 @@ default (`fit`: how they are parameterised), which CSV columns measure a state v
 (`columns`), and the body's `identifiability` notes explain components that the generic
 identifiability check may find undetermined. An effect's inputs may declare columns too: a
 measured output (a wheel's tachometer, `wheel{i}_speed`) whose state is then fitted, or a
-known input over time (commanded motor torques, `wheel{i}_torque`). Nothing in the fitter depends on these; the
-command uses them to turn a data file into a call of [`jaxdyn.fit`][].
+known input over time (commanded motor torques, `wheel{i}_torque`). Nothing in the fitter
+depends on these; the command uses them to turn a data file into a call of [`jaxdyn.fit`][].
 """
 
 import dataclasses
