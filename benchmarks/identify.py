@@ -63,6 +63,7 @@ import json
 import platform
 import resource
 import statistics
+import sys
 import time
 
 import jax
@@ -334,6 +335,7 @@ def posterior_coverage(seeds: int, eps: float = 1e-3, samples: int = 64, t1: flo
                      "leapfrogs": res.posterior_leapfrogs,
                      "gn_covers": [bool(x) for x in gn[-2:]],
                      "posterior_covers": [bool(x) for x in post[-2:]]})
+        print(json.dumps(rows[-1]), file=sys.stderr, flush=True)  # progress
     n = len(post)
     bound = 3 * np.sqrt(0.9 * 0.1 / n)
     return {"moments": moments.tolist(), "samples": samples, "noise": noise, "seeds": seeds,
