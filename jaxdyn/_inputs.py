@@ -67,8 +67,15 @@ class Input:
     - `needs_attitude`: giving it makes the scene integrate the attitude.
     - `fit`: how `jaxdyn fit` fits it by default: `None` (it stays known), `"free"`,
       `"positive"`, `"inertia"` (a physically valid inertia) or `"unit"` (a unit quaternion).
-    - `columns`: for an initial value, the CSV columns that measure its state variable.
+    - `columns`: for an initial value, the CSV columns of `jaxdyn fit` that measure the output
+      of the same name as its state variable (an effect's output `<kind>.<state>`); for a
+      parameter, the columns that give it as a known input over time (held from each sample
+      to the next: a zero-order hold, [`jaxdyn.CommandedTorques`][]). `{i}` in a name stands
+      for the element's number, from 1 (one column per wheel: `wheel{i}_speed`). An effect's
+      columns are optional as a group: all of them, or none.
     - `measured_optionally`: those columns may be absent (the variable is then not fitted).
+    - `fits`: for an initial value measured by `columns` that is not itself a state variable
+      (a wheel's speed), the state variable that `fit` fits in its place (its momentum).
     - `measures`: for an effect's parameter, the body's reference quantity it measures
       (`"momentum"`), for uses that solve in natural units.
     """
@@ -87,6 +94,7 @@ class Input:
     fit: str | None = None
     columns: tuple[str, ...] = ()
     measured_optionally: bool = False
+    fits: str | None = None
     measures: str | None = None
 
     def __post_init__(self):

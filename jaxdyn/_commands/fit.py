@@ -24,7 +24,9 @@ def _columns_help() -> str:
         cols = ",".join(c for cs in spec.columns.values() for c in cs)
         extra = ",".join(c for cs in spec.optional_columns.values() for c in cs)
         parts.append(f"t,{cols} for a {kind}" + (f" (optionally {extra})" if extra else ""))
-    return "; ".join(parts)
+    from .._identify._presets import effect_columns_help
+
+    return "; ".join(parts + effect_columns_help())
 
 
 def _progress(flag) -> bool:
@@ -138,6 +140,18 @@ def _choose_scene(header: list[str], path: str) -> str:
                          f"{expected} (or pass --scene)")
 
 
+def _other_effects(unknown: list[str]) -> str:
+    """A hint where an unknown column is one of an effect that the scene lacks."""
+    from .._identify._presets import effect_of_column
+
+    for c in unknown:
+        kind = effect_of_column(c)
+        if kind is not None:
+            return (f"; {c} is a column of the effect {kind!r}, which this scene lacks: pass "
+                    f"--scene with a scene that has it")
+    return ""
+
+
 def _continuous_quaternions(q):
     """Flip signs so that successive samples are on the same side (q and -q are one
     attitude; the integrated quaternion is continuous)."""
@@ -165,7 +179,7 @@ def run(args) -> int:
     import numpy as np
 
     from .._identify import fit
-    from .._identify._presets import fit_specs
+    from .._identify._presets import effect_columns, fit_specs, hold, initial_values
     from .._scenefile import load_scene
     from .._validation import ParameterError
 
@@ -177,20 +191,27 @@ def run(args) -> int:
     header, rows = _read_csv(args.data)
     scene_name = args.scene or _choose_scene(header, args.data)
 
-    # A first load finds the body kind (and checks the --set names against the scene).
-    kind = load_scene(scene_name, sets).scene.body.kind
+    # A first load finds the body kind and the effects (and checks the --set names).
+    first = load_scene(scene_name, sets).scene
+    kind = first.body.kind
     specs = fit_specs()
     if kind not in specs:
         raise ParameterError(f"--scene {scene_name}: a {kind} cannot be fitted; fit supports "
                              f"{sorted(specs)}")
     spec = specs[kind]
+    effects = effect_columns(first)
     outputs = dict(spec.columns)
     optional = {k: v for k, v in spec.optional_columns.items() if any(c in header for c in v)}
     outputs.update(optional)
     required = ["t"] + [c for cols in spec.columns.values() for c in cols]
     extra = [c for cols in spec.optional_columns.values() for c in cols]
+    groups = {name: cols for e in effects for name, cols in {**e.measured, **e.held}.items()}
+    extra += [c for cols in groups.values() for c in cols]
     allowed = required + extra
     wanted = required + [c for cols in optional.values() for c in cols]
+    # An effect's columns come as a group: all of them (one per wheel), or none.
+    given = {name: cols for name, cols in groups.items() if any(c in header for c in cols)}
+    wanted += [c for cols in given.values() for c in cols]
     missing = [c for c in wanted if c not in header]
     if missing:
         also = f" (optionally also {','.join(extra)})" if extra else ""
@@ -199,7 +220,7 @@ def run(args) -> int:
     unknown = [c for c in header if c not in allowed]
     if unknown:
         raise ParameterError(f"{args.data}: unknown column(s) {unknown}: allowed are "
-                             f"{','.join(allowed)}")
+                             f"{','.join(allowed)}{_other_effects(unknown)}")
     if len(rows) < 3:
         raise ParameterError(f"{args.data}: {len(rows)} data row(s): at least 3 are needed "
                              "(and more values than unknowns)")
@@ -211,13 +232,18 @@ def run(args) -> int:
         i = int(np.argmax(steps <= 0)) + 1
         raise ParameterError(f"{args.data} row {i + 1}, column t={ts[i]:g}: times must be "
                              f"strictly increasing (previous {ts[i - 1]:g})")
+    outputs.update({n: c for e in effects for n, c in e.measured.items() if n in given})
     data = {name: np.stack([col[c] for c in cols], axis=-1) if len(cols) > 1 else col[cols[0]]
             for name, cols in outputs.items()}
     if "quaternion" in data:
         data["quaternion"] = _continuous_quaternions(data["quaternion"])
+    held = {name: (ts, np.stack([col[c] for c in cols], axis=-1))
+            for e in effects for name, cols in e.held.items() if name in given}
 
     # Starting initial values from the first sample, unless given.
     state_to_file = {v: k for k, v in spec.initial_names.items()}
+    for e in effects:
+        state_to_file.update({v: k for k, v in e.initial_names.items()})
     overrides = dict(sets)
     for name in data:
         file_name = state_to_file.get(name)
@@ -227,11 +253,23 @@ def run(args) -> int:
     if "quaternion" in data:
         overrides["attitude"] = True
     loaded = load_scene(scene_name, overrides)
-    scene = loaded.scene
+    scene, y0 = loaded.scene, loaded.y0
+    if held:
+        # Known inputs (commanded torques) in place of the scene's laws: a new state layout
+        # (a motor's work), so the initial state is built again from the same values.
+        scene = hold(scene, held)
+        y0 = scene.state(**initial_values(scene, loaded.values))
 
     parameters = {k: m for k, m in spec.parameters.items() if k not in sets}
     initial = {**spec.initial, **{k: m for k, m in spec.optional_initial.items() if k in data}}
     initial = {k: m for k, m in initial.items() if state_to_file.get(k) not in sets}
+    # An effect's measured output: its state is fitted (a wheel's momentum, from its speed).
+    fitted_state = {}
+    for e in effects:
+        for output, (state, how) in e.fitted.items():
+            if output in data and state_to_file.get(output) not in sets:
+                initial[state] = how
+                fitted_state[state] = output
     if not parameters and not initial:
         raise ParameterError("--set fixes everything that could be fitted: nothing to fit")
     tolerances = {k: float(sets[k]) for k in ("rtol", "atol") if k in sets}
@@ -242,7 +280,7 @@ def run(args) -> int:
 
     t0 = time.perf_counter()
     # Rates and attitude have different units: each is weighted by its own residual scale.
-    result = fit(scene, ts, data, parameters=parameters, initial=initial, y0=loaded.y0,
+    result = fit(scene, ts, data, parameters=parameters, initial=initial, y0=y0,
                  bias=list(dict.fromkeys(args.bias)), notes=spec.notes,
                  restarts=args.restarts, key=args.seed, method=args.method,
                  reweight=True, progress=_progress(args.progress), **tolerances)
@@ -256,6 +294,7 @@ def run(args) -> int:
             "principal_moments": _number(v["inertia.principal_moments"]),
             "principal_axes": _number(v["inertia.principal_axes"]),
             "std": _number(s["inertia.principal_moments"]),
+            "principal_axes_std": _number(s["inertia.principal_axes"]),
             "scale_identified": scale,
         })
         if scale:
@@ -273,7 +312,7 @@ def run(args) -> int:
         out[f"bias.{name}"] = _number(v[f"bias.{name}"])
         out[f"bias.{name}_std"] = _number(s[f"bias.{name}"])
     for name in initial:
-        file_name = state_to_file.get(name, name)
+        file_name = name if name in fitted_state else state_to_file.get(name, name)
         out[file_name] = _number(v[name])
         out[f"{file_name}_std"] = _number(s[name])
     # In the units of the first output (rad/s, or rad for the rod); all outputs listed apart.
@@ -288,6 +327,10 @@ def run(args) -> int:
     out["identifiable"] = result.identifiable
     out["not_identifiable"] = [c for c, ok in result.identifiable.items() if not ok]
     out["notes"] = list(result.notes)
+    if "inertia" in parameters and result.identifiable["inertia.scale"]:
+        out["notes"].append("inertia.scale is determined by the data: known torques or "
+                            "momenta in the scene (commanded motor torques, wheel momenta) "
+                            "fix the absolute inertia, reported in kg m^2")
     out["converged"] = result.converged
     out["iterations"] = result.iterations
     out["starts"] = int(result.restart_losses.size)

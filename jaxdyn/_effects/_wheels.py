@@ -72,7 +72,7 @@ class Wheels(AbstractEffect):
         Input("inertia", "axial moments J_i (the body's inertia then excludes them)",
               "kg m^2", shapes=(("N",), ()), bound="positive"),
         Input("motor", "constant motor torques (or a control law: see control)", "N m",
-              shapes=(("N",), ())),
+              shapes=(("N",), ()), columns=("wheel{i}_torque",)),
         Input("max_torque", "motor torque limits (commands are clipped)", "N m",
               shapes=(("N",), ()), bound="positive"),
         Input("max_speed", "relative spin limits", "rad/s", shapes=(("N",), ()),
@@ -87,7 +87,8 @@ class Wheels(AbstractEffect):
         Input("kp", "attitude-tracking proportional gain", "N m", bound="nonnegative"),
         Input("kd", "attitude-tracking rate gain", "N m s", bound="nonnegative"),
         Input("speed", "initial spins relative to the body", "rad/s", shapes=(("N",), ()),
-              role="initial", state="speed"),
+              role="initial", state="speed", fit="free", columns=("wheel{i}_speed",),
+              measured_optionally=True, fits="momentum"),
     )
     parameter_names = ("axes", "inertia", "max_torque", "max_speed", "damping")
     state_kinds = {"momentum": "momentum", "work": "energy", "dissipated": "energy"}

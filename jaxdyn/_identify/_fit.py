@@ -461,7 +461,8 @@ class FitResult:
       shooting.
     - `posterior`: with `fit(posterior=n)`, `n` posterior draws of each quantity of `values`
       (NUTS; shape `(n, *shape)`), else `None`; `posterior_acceptance`: NUTS's mean
-      acceptance rate.
+      acceptance rate; `posterior_leapfrogs`: its mean number of leapfrog steps per draw
+      (each costs one forward-mode gradient through the integrator).
     """
 
     values: dict[str, Array]
@@ -485,6 +486,7 @@ class FitResult:
     segments: int = 1
     posterior: dict[str, np.ndarray] | None = None
     posterior_acceptance: float | None = None
+    posterior_leapfrogs: float | None = None
 
 
 def _sums_by_output(r, obs, padded, kinds):
@@ -1031,18 +1033,18 @@ def fit(
         H, rss, sums = normal_and_sums(best, u)
     cov, values, std, s2, sv, vt = _uncertainty(problem, u, free, H, rss, n_obs)
 
-    draws, acceptance = None, None
+    draws, acceptance, leapfrogs = None, None, None
     if posterior:
         from ._posterior import sample
 
         index = np.nonzero(free_np)[0]
-        us, acceptance = sample(
+        us, acceptance, leapfrogs = sample(
             problem, u.astype(u0.dtype), jnp.asarray(index), u0, ts_p, obs_p, weights,
             s2, cov[index][:, index], jax.random.fold_in(key, 1), draws=posterior,
             warmup=warmup)
         draws = jax.tree.map(np.asarray,
                              jax.vmap(lambda v: _summaries(problem, v, free))(us))
-        acceptance = float(acceptance)
+        acceptance, leapfrogs = float(acceptance), float(leapfrogs)
     identifiable = {c: bool(f) for c, f in zip(components, free_np)}
     notes = dict(notes or {})
     lines = []
@@ -1069,6 +1071,6 @@ def fit(
         iterations=best["iterations"], history=best["history"] * c2, stages=best["stages"],
         restart_losses=np.array([run["loss"] for run in runs]) * c2,
         segments=1 if shooting is None else shooting.segments,
-        posterior=draws, posterior_acceptance=acceptance,
+        posterior=draws, posterior_acceptance=acceptance, posterior_leapfrogs=leapfrogs,
     )
 

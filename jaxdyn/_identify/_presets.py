@@ -1,14 +1,20 @@
-"""What `jaxdyn fit` fits for each kind of body, derived from the body's declared inputs.
+"""What `jaxdyn fit` fits for each kind of body and reads for each effect, derived from
+their declared inputs.
 
 A body's inputs ([`jaxdyn.Input`][]) say which parameters and initial values are fitted by
 default (`fit`: how they are parameterised), which CSV columns measure a state variable
 (`columns`), and the body's `identifiability` notes explain components that the generic
-identifiability check may find undetermined. Nothing in the fitter depends on these; the
-command uses them to turn a data file into a call of [`jaxdyn.fit`][].
+identifiability check may find undetermined. An effect's inputs may declare columns too: a
+measured output (a wheel's tachometer, `wheel{i}_speed`) whose state is then fitted, or a
+known input over time (commanded motor torques, `wheel{i}_torque`). Nothing in the fitter
+depends on these; the command uses them to turn a data file into a call of [`jaxdyn.fit`][].
 """
 
 import dataclasses
+import re
 from collections.abc import Mapping
+
+import numpy as np
 
 from .._inputs import all_registered
 from ._parameterisation import (
@@ -80,3 +86,129 @@ def fit_specs() -> dict[str, FitSpec]:
     bodies, _ = all_registered()
     specs = {kind: fit_spec(cls) for kind, cls in sorted(bodies.items())}
     return {kind: spec for kind, spec in specs.items() if spec is not None}
+
+
+@dataclasses.dataclass(frozen=True)
+class EffectColumns:
+    """The data-file columns of one effect of a scene (see [`jaxdyn.Input`][] `columns`).
+
+    **Fields:**
+
+    - `label`: the effect's label in the scene (`"wheels"`).
+    - `measured`: for each output the data may hold (`"wheels.speed"`), its columns.
+    - `fitted`: for each such output, the state variable fitted (`"wheels.momentum"`) and
+      how; `initial_names`: its scene-file name (`"wheels.speed"`), started from the first
+      sample.
+    - `held`: for each parameter that the data may give over time (`"wheels.motor"`), its
+      columns (held from each sample to the next).
+    - `units`: the unit of each column.
+    """
+
+    label: str
+    measured: Mapping[str, tuple[str, ...]]
+    fitted: Mapping[str, tuple[str, AbstractParameterisation]]
+    initial_names: Mapping[str, str]
+    held: Mapping[str, tuple[str, ...]]
+    units: Mapping[str, str]
+
+
+def expand(columns: tuple[str, ...], count: int) -> tuple[str, ...]:
+    """Column names with `{i}` expanded to `1..count` (names without it are kept)."""
+    return tuple(c.format(i=i) for c in columns
+                 for i in (range(1, count + 1) if "{i}" in c else (0,)))
+
+
+def _count(effect) -> int:
+    """The number of elements (wheels) of an effect: the leading size of its first parameter
+    declared with one row per element (`("N", ...)`)."""
+    values = effect.parameters()
+    for inp in type(effect).inputs:
+        value = values.get(inp.name)
+        if inp.role == "parameter" and inp.shapes[0][:1] == ("N",) and value is not None:
+            return int(np.shape(value)[0])
+    return 1
+
+
+def effect_columns(scene) -> list[EffectColumns]:
+    """The columns of each effect of `scene` that declares some, by its declarations."""
+    out = []
+    for label, effect in zip(scene.labels, scene.effects):
+        n = _count(effect)
+        measured, fitted, names, held, units = {}, {}, {}, {}, {}
+        for inp in type(effect).inputs:
+            if not inp.columns:
+                continue
+            cols = expand(inp.columns, n)
+            units.update(dict.fromkeys(cols, inp.unit))
+            if inp.role == "parameter":
+                held[f"{label}.{inp.name}"] = cols
+            else:
+                output = f"{label}.{inp.state}"
+                measured[output] = cols
+                names[f"{label}.{inp.name}"] = output
+                if inp.fit is not None:
+                    fitted[output] = (f"{label}.{inp.fits or inp.state}",
+                                      PARAMETERISATIONS[inp.fit]())
+        if measured or held:
+            out.append(EffectColumns(label, measured, fitted, names, held, units))
+    return out
+
+
+def effect_column_inputs() -> dict[str, list]:
+    """The inputs that declare columns, of each registered effect that has some, by kind."""
+    _, effects = all_registered()
+    found = {kind: [i for i in cls.inputs if i.columns] for kind, cls in sorted(effects.items())}
+    return {kind: inputs for kind, inputs in found.items() if inputs}
+
+
+def effect_columns_help() -> list[str]:
+    """One phrase per registered effect with columns: its column templates and units
+    (measured outputs first, then known inputs)."""
+    def phrase(i, c):
+        how = "measured" if i.role == "initial" else "known input, held to the next sample"
+        return f"{c} ({i.unit}, {how})"
+
+    return [f"with a scene with {kind} (i = 1..N): "
+            + ", ".join(phrase(i, c) for i in sorted(inputs, key=lambda i: i.role != "initial")
+                       for c in i.columns)
+            for kind, inputs in effect_column_inputs().items()]
+
+
+def effect_of_column(column: str) -> str | None:
+    """The kind of the registered effect that declares `column` (a template's instance)."""
+    for kind, inputs in effect_column_inputs().items():
+        for template in (c for i in inputs for c in i.columns):
+            pattern = re.escape(template).replace(re.escape("{i}"), "[1-9][0-9]*")
+            if re.fullmatch(pattern, column):
+                return kind
+    return None
+
+
+def hold(scene, held: Mapping[str, tuple]):
+    """`scene` with each effect parameter of `held` (`{"wheels.motor": (times, values)}`)
+    replaced by its known values over time, held from each time to the next
+    ([`jaxdyn.CommandedTorques`][], a law `(t, y, effect)`): commanded motor torques in place
+    of the scene's control law."""
+    from .._effects._wheels import CommandedTorques
+    from .._scene import Scene
+
+    effects = list(scene.effects)
+    for name, (times, values) in held.items():
+        label, param = name.split(".", 1)
+        k = scene.labels.index(label)
+        args = {**effects[k].constructor_args(), param: CommandedTorques(times, values)}
+        effects[k] = type(effects[k])(**args)
+    return Scene(scene.body, tuple(effects), attitude=scene.attitude)
+
+
+def initial_values(scene, values: Mapping) -> dict:
+    """The initial values (by the names that `scene.state` takes) among a scene file's
+    `values` (by their file names: `omega0`, `wheels.speed`), as the inputs declare them."""
+    out = {}
+    parts = [("", scene.body)] + [(label + ".", e) for label, e in
+                                  zip(scene.labels, scene.effects)]
+    for prefix, part in parts:
+        for inp in type(part).inputs:
+            if inp.role == "initial" and prefix + inp.name in values:
+                out[prefix + inp.state] = values[prefix + inp.name]
+    return out
