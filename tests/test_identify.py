@@ -360,7 +360,8 @@ def _coverage(hits, seeds):
 def test_gyro_bias_and_moments_intervals_cover_the_truth():
     """Gyro rates with a constant bias and white noise: the bias is fitted beside the moments
     and the initial rates; the 1-sigma intervals of both cover the truth at about 68 % over
-    seeds (fits start at the truth: this tests the intervals, not the search)."""
+    seeds (fits start at the truth and fit the whole record at once, as in
+    test_intervals_cover_the_truth: this tests the intervals, not the search)."""
     ts = np.linspace(0.0, 8.0, SAMPLES)
     moments, w, _, w0, _ = _attitude_record(ts)
     bias, noise = np.array([2e-3, -1e-3, 5e-4]), 1e-3
@@ -371,7 +372,7 @@ def test_gyro_bias_and_moments_intervals_cover_the_truth():
         rng = np.random.default_rng(20_000 + seed)
         res = jd.fit(scene, ts, {"omega": w + bias + noise * rng.normal(size=w.shape)},
                      parameters={"inertia": jd.ValidInertia()}, initial=["omega"],
-                     bias=["omega"], sigma={"omega": noise}, restarts=1,
+                     bias=["omega"], sigma={"omega": noise}, restarts=1, horizons=(1.0,),
                      y0={"omega": jnp.asarray(w0)})
         m = np.asarray(res.values["inertia.principal_moments"])[:2]
         b = np.asarray(res.values["bias.omega"])
@@ -392,7 +393,7 @@ def test_star_tracker_quaternions_intervals_cover_the_truth():
     noise = 1e-3
     kwargs = dict(parameters={"inertia": jd.ValidInertia()},
                   initial={"omega": jd.Unconstrained(), "quaternion": jd.UnitQuaternion()},
-                  sigma={"quaternion": noise}, restarts=1, y0=y0)
+                  sigma={"quaternion": noise}, restarts=1, horizons=(1.0,), y0=y0)
     hits = []
     for seed in range(SENSOR_SEEDS):
         data = _star_tracker(q, noise, np.random.default_rng(30_000 + seed))
