@@ -59,7 +59,8 @@ class SceneSpec:
     """A scene with its initial state and run settings, as read from a scene file.
 
     **Fields:** `name`, `description`, `scene` ([`jaxdyn.Scene`][]), `y0` (initial state),
-    `t1`, `rtol`, `atol`, and `values` (every named value after overrides, for reporting).
+    `t1`, `rtol`, `atol`, `values` (every named value after overrides, for reporting) and
+    `initial` (the initial values by the names `scene.state` takes, from which `y0` was built).
     """
 
     name: str
@@ -70,6 +71,7 @@ class SceneSpec:
     rtol: float
     atol: float
     values: dict[str, Any]
+    initial: dict[str, Any]
 
 
 def builtin_scenes() -> dict[str, str]:
@@ -230,6 +232,7 @@ def load_scene(name_or_path: str, overrides: Mapping[str, Any] | None = None) ->
     return SceneSpec(
         name=name, description=str(data.get("description", "")), scene=scene, y0=y0,
         t1=float(run["t1"]), rtol=float(run["rtol"]), atol=float(run["atol"]), values=report,
+        initial=initial,
     )
 
 

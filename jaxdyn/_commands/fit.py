@@ -179,7 +179,7 @@ def run(args) -> int:
     import numpy as np
 
     from .._identify import fit
-    from .._identify._presets import effect_columns, fit_specs, hold, initial_values
+    from .._identify._presets import effect_columns, fit_specs, hold
     from .._scenefile import load_scene
     from .._validation import ParameterError
 
@@ -258,7 +258,7 @@ def run(args) -> int:
         # Known inputs (commanded torques) in place of the scene's laws: a new state layout
         # (a motor's work), so the initial state is built again from the same values.
         scene = hold(scene, held)
-        y0 = scene.state(**initial_values(scene, loaded.values))
+        y0 = scene.state(**loaded.initial)
 
     parameters = {k: m for k, m in spec.parameters.items() if k not in sets}
     initial = {**spec.initial, **{k: m for k, m in spec.optional_initial.items() if k in data}}

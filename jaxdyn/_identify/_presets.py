@@ -200,15 +200,3 @@ def hold(scene, held: Mapping[str, tuple]):
         effects[k] = type(effects[k])(**args)
     return Scene(scene.body, tuple(effects), attitude=scene.attitude)
 
-
-def initial_values(scene, values: Mapping) -> dict:
-    """The initial values (by the names that `scene.state` takes) among a scene file's
-    `values` (by their file names: `omega0`, `wheels.speed`), as the inputs declare them."""
-    out = {}
-    parts = [("", scene.body)] + [(label + ".", e) for label, e in
-                                  zip(scene.labels, scene.effects)]
-    for prefix, part in parts:
-        for inp in type(part).inputs:
-            if inp.role == "initial" and prefix + inp.name in values:
-                out[prefix + inp.state] = values[prefix + inp.name]
-    return out
