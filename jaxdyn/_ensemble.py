@@ -377,7 +377,8 @@ def _run_vmap(shared: _Shared, config: _ChunkConfig, params, y0, flags):
                          solver=config.solver, controller=controller, dt0=shared.dt0,
                          max_steps=config.max_steps, adjoint=dfx.RecursiveCheckpointAdjoint(),
                          events=config.events, meter=dfx.NoProgressMeter(), dense=False,
-                         checks=False)
+                         checks=False, solver_saves=True)  # not diffrax's `SaveAt(ts)`: its
+        # check of traced times is a host callback, which keeps a program out of the cache
 
     trajs = eqx.filter_vmap(run)(params, y0)
     invalid = jnp.any(flags, axis=1)

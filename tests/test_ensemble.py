@@ -260,18 +260,41 @@ def test_rod_fall_times_from_nearly_upright():
     assert abs(median / float(rod.fall_time(1e-3)) - 1) < 0.01
 
 
-def test_saved_times_and_a_custom_observation():
+@pytest.mark.parametrize("mode", ["adaptive", "vmap"])
+def test_saved_times_and_a_custom_observation(mode):
     ts = jnp.linspace(0.0, 5.0, 11)
 
     def observe(traj):
         w2 = traj.ys["omega"][:, 1]
         return {"min_w2": jnp.min(jnp.where(traj.valid, w2, jnp.inf)), "w2_at_ts": w2}
 
-    res = _free(n=8, ts=ts, observe=observe)
+    res = _free(n=8, ts=ts, observe=observe, mode=mode)
     w0, inertia = _samples(8)
     exact = jax.vmap(lambda i, w: jd.torque_free_omega(i, w, ts))(inertia, w0)
     assert np.allclose(res.values["w2_at_ts"], exact[..., 1], atol=1e-8)
     assert np.allclose(res.values["min_w2"], exact[..., 1].min(axis=1), atol=1e-8)
+
+
+def test_every_mode_with_saved_times_is_a_cacheable_program(caplog):
+    """Each mode's chunk program with saved times is written to the persistent compilation
+    cache: none holds a host callback (diffrax's `SaveAt(ts)` check of traced times would)."""
+    compiled = []
+
+    def listen(event, **kw):  # a compilation that went through the persistent cache
+        if event == "/jax/compilation_cache/compile_requests_use_cache":
+            compiled.append(event)
+
+    jax.monitoring.register_event_listener(listen)
+    try:
+        for mode in ("adaptive", "lockstep", "vmap"):
+            compiled.clear()
+            with caplog.at_level("DEBUG", logger="jax"):
+                caplog.clear()
+                _free(n=4, chunk_size=4, ts=jnp.linspace(0.0, 5.0, 17), mode=mode)
+            assert compiled, mode  # a program of its own was built (else the test sees none)
+            assert "host callback" not in caplog.text, mode
+    finally:
+        jax.monitoring.unregister_event_listener(listen)
 
 
 def test_a_failing_trajectory_does_not_stop_the_batch():
