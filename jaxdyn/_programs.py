@@ -34,6 +34,7 @@ _TRUSTED = ("jaxdyn", "builtins", "diffrax", "equinox", "jax", "jaxlib", "optimi
             "lineax", "collections", "numpy")
 _CLASS = re.compile(r"<class '([\w.]+)'>")
 _DIR = "jaxdyn-programs"
+_ANY_CUSTOM_CALL = [jax.export.DisabledSafetyCheck.custom_call("ALL")]
 
 
 def _register_sentinels() -> None:
@@ -147,7 +148,11 @@ class StoredProgram:
             return leaves
 
         try:
-            exported = jax.export.export(jax.jit(_named(flat, self.fn)))(*args)
+            # Custom calls (LAPACK's QR in a fit) are stored too: the key holds jaxlib's
+            # version and the backend, so the stability across versions that `jax.export`
+            # checks by default is not needed.
+            exported = jax.export.export(jax.jit(_named(flat, self.fn)),
+                                         disabled_checks=_ANY_CUSTOM_CALL)(*args)
             blob = exported.serialize()
             tree = pickle.dumps(found[0])
             if pickle.loads(tree) != found[0]:  # a structure that does not survive a pickle

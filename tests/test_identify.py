@@ -570,7 +570,7 @@ def test_cli_rod_with_known_g(capsys, tmp_path):
 def test_cli_fit_programs_are_cached_on_the_second_run(tmp_path):
     """JAX's own log: every program of `jaxdyn fit` is written to the persistent cache (none is
     refused for holding a host callback: the sample times are traced), and the second
-    invocation compiles nothing."""
+    invocation compiles nothing and traces no fit program."""
     rng = np.random.default_rng(5503)
     tensor, w0 = random_body(rng)
     ts = np.linspace(0.0, 12.0, SAMPLES)
@@ -593,6 +593,12 @@ def test_cli_fit_programs_are_cached_on_the_second_run(tmp_path):
     assert not re.search(r"Writing .* to persistent compilation cache", second)
     hits = re.findall(r"Persistent compilation cache hit for '([^']+)'", second)
     assert "jit__levenberg_marquardt" in hits and "jit__jacobian" in hits, hits
+    # ... and reads the fit's stored programs instead of tracing them (`_stored_jit`): the
+    # first run traces the function and then the call of its exported form, the second only
+    # that call.
+    for name in ("_levenberg_marquardt", "_jacobian"):
+        traced = re.compile(rf"Finished tracing {name} for jit")
+        assert len(traced.findall(second)) < len(traced.findall(first)), name
 
 
 BAD = [

@@ -47,6 +47,7 @@ from .._outcome import is_success
 from .._rotations import quat_conjugate, quat_multiply
 from .._scene import Scene
 from .._simulate import check_tolerances, simulate_unchecked
+from .._stored_jit import stored_filter_jit
 from .._tolerance import ScaledPIDController
 from .._validation import ParameterError, format_value
 from ._parameterisation import AbstractParameterisation, Unconstrained
@@ -164,6 +165,12 @@ def _tick(loss) -> None:
         bar.set_postfix_str(f"loss {float(loss):.4g}", refresh=False)
 
 
+def _reports_progress(kwargs) -> bool:
+    """Whether a program reports its progress (a host callback: such programs are not
+    stored, see `_stored_jit`)."""
+    return bool(kwargs.get("progress"))
+
+
 def _report_progress(progress: bool, loss) -> None:
     if progress:
         jax.debug.callback(_tick, loss)
@@ -187,14 +194,14 @@ def _jacobian_and_value(f, u):
     return jax.jacfwd(twice, has_aux=True)(u)
 
 
-@eqx.filter_jit
+@stored_filter_jit
 def _jacobian(problem, u, ts, data, weights):
     """Residuals and their Jacobian (forward mode through the integrator)."""
     J, r = _jacobian_and_value(lambda u: problem.residuals(u, ts, data, weights), u)
     return r, J
 
 
-@eqx.filter_jit
+@stored_filter_jit(unless=_reports_progress)
 def _adam(problem, u0, free, ts, data, weights, learning_rate, *, steps, progress):
     """`steps` Adam steps; returns the last iterate and the loss before each step."""
     opt = optax.adam(learning_rate)
@@ -295,7 +302,7 @@ def _with_forward_jacobian(residuals):
 _OPTIONS = {"jac": "fwd"}
 
 
-@eqx.filter_jit
+@stored_filter_jit(unless=_reports_progress)
 def _levenberg_marquardt(problem, u0, free, ts, data, weights, tol, *, max_iter, progress):
     """Levenberg--Marquardt (optimistix), stepped here so that the loss of every iteration is
     recorded. Converged when optimistix's Cauchy criterion holds (successive accepted iterates
@@ -340,7 +347,7 @@ def _levenberg_marquardt(problem, u0, free, ts, data, weights, tol, *, max_iter,
     return u, loss, k, done & ~failed, history
 
 
-@eqx.filter_jit
+@stored_filter_jit(unless=_reports_progress)
 def _lbfgs(problem, u0, free, ts, data, weights, tol, *, max_iter, progress):
     """L-BFGS (optax, zoom line search). Converged when the largest gradient component is
     below `tol`, or a step lowered the loss by less than `tol` (relative)."""
@@ -393,7 +400,7 @@ def _summaries(problem, u, free):
     return out
 
 
-@eqx.filter_jit
+@stored_filter_jit
 def _uncertainty(problem, u, free, H, rss, n_obs):
     """Gauss--Newton covariance of `u` and the 1-sigma intervals of the reported summaries,
     from the normal matrix `H = J^T J` and the residual sum of squares `rss` at the optimum

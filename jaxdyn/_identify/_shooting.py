@@ -39,6 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._stored_jit import stored_filter_jit
 from ._parameterisation import Unconstrained, UnitQuaternion
 
 _CONTINUITY = 10.0  # weight of a continuity defect, relative to its segment's data
@@ -154,7 +155,7 @@ def bind_segments(templates, names, ys):
     return eqx.filter_vmap(one)(ys)
 
 
-@eqx.filter_jit
+@stored_filter_jit
 def linearise(problem, lay, p, s, smaps, seg_ts, seg_data, seg_w, has_next, wc, *,
               batch, jacobian=True):
     """Per-segment blocks at `(p, s)`: data normal matrix `N` and gradient `g` over `(p,
@@ -363,7 +364,7 @@ def chunk(n_segments: int, per_segment: int) -> int:
     return int(max(1, min(n_segments, 1024, _MEMORY // max(per_segment, 1))))
 
 
-@eqx.filter_jit
+@stored_filter_jit
 def _simulate_to(problem, scene, y0, ts, *, max_steps):
     from .._simulate import simulate_unchecked
     from .._tolerance import ScaledPIDController
