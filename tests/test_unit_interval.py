@@ -1,6 +1,6 @@
 """Segments integrated on the unit interval (`jaxdyn._hybrid`, "Time on the unit interval"):
 the times handed in and out are the caller's own, the run is the same wherever its interval
-lies, gradients with respect to the end time are the vector field there, and the compiled
+lies, the final state moves with the end time as the vector field says, and the compiled
 program stays under XLA:CPU's estimate of a cheap program (what lets it run on the calling
 thread)."""
 
@@ -46,19 +46,17 @@ def test_dense_output_is_in_the_callers_time():
     assert np.all(np.isnan(np.asarray(dense.evaluate(jnp.array([4.9, 25.1]))["omega"])))
 
 
-def test_the_gradient_with_respect_to_the_end_time_is_the_vector_field_there():
-    """`d y(t1) / d t1 = f(y(t1))` (the span scales every step of the run now)."""
-    weights = jnp.array([1.0, -2.0, 3.0])
-
+def test_the_final_state_moves_with_the_end_time_as_the_vector_field_says():
+    """`d y(t1) / d t1 = f(y(t1))`: the span now scales every step of the run, so a wrong
+    scale shows here (central differences of concrete runs at tight tolerances; reverse-mode
+    gradients through runs are checked against finite differences elsewhere)."""
     def final(t1):
-        return jd.simulate(FREE, W0, t1).y_final["omega"] @ weights
+        return np.asarray(jd.simulate(FREE, W0, t1, rtol=1e-12).y_final["omega"])
 
-    t1 = jnp.asarray(7.0)
-    grad = jax.grad(final)(t1)
-    y1 = jd.simulate(FREE, W0, 7.0).y_final
-    expected = FREE.vector_field(t1, y1)["omega"] @ weights
-    np.testing.assert_allclose(np.asarray(grad), np.asarray(expected),
-                               rtol=tol(FINITE_DIFF), atol=1e-9)
+    t1, h = 7.0, 1e-3
+    slope = (final(t1 + h) - final(t1 - h)) / (2 * h)
+    expected = FREE.vector_field(t1, {"omega": jnp.asarray(final(t1))})["omega"]
+    np.testing.assert_allclose(slope, np.asarray(expected), rtol=tol(FINITE_DIFF), atol=1e-9)
 
 
 @pytest.mark.parametrize("scene, y0, t1", [(FREE, W0, 20.0),
