@@ -9,7 +9,11 @@
 - **Calls**: `jd.simulate` after compilation against a hand-written `jax.jit(diffeqsolve)` of
   the same problem (the vector field written out, parameters passed as arguments, the same
   tableau and tolerances, saving the start and the end), on the free body and on the falling
-  rod (with its impact event); the call against jaxdyn's own compiled program; a derived
+  rod (with its impact event), as written (diffrax's runtime check on: a host callback, which
+  makes XLA:CPU run the program on the calling thread) and without that check (as jaxdyn's
+  programs, which hold no host callback: XLA:CPU then runs a program on a worker thread unless
+  its cost estimate, also reported, is under 1000 operations); the call against jaxdyn's own
+  compiled program; a derived
   output (`traj.omega`, `traj.normal_force`) against its compiled program. Medians of repeats;
   the steps and the final states of both are compared.
 - **Samples**: `jd.simulate(..., ts=...)` of the free body over 100 s (about 1000 steps)
@@ -152,11 +156,11 @@ def calls(repeats):
 
     inertia, scene, y0, euler = _free_body()
 
-    @jax.jit
-    def hand_free(w0, i, t1):
+    def hand_free(w0, i, t1, throw=True):
         return dfx.diffeqsolve(dfx.ODETerm(euler), dfx.Tsit5(), 0.0, t1, None, w0, args=i,
                                stepsize_controller=dfx.PIDController(rtol=rtol, atol=atol),
-                               saveat=dfx.SaveAt(t0=True, t1=True), max_steps=100_000)
+                               saveat=dfx.SaveAt(t0=True, t1=True), max_steps=100_000,
+                               throw=throw)
 
     # Falling rod, to impact.
     rod = jd.FallingRod(length=1.0, mass=1.0, g=9.81)
@@ -170,34 +174,47 @@ def calls(repeats):
         acc = 3 * s * (2 * g - length * om**2 * c) / (length * (1 + 3 * s**2))
         return jnp.stack([om, acc])
 
-    @jax.jit
-    def hand_rod(y, p, t1):
+    def hand_rod(y, p, t1, throw=True):
         event = dfx.Event(lambda t, y, args, **kw: jnp.pi / 2 - jnp.abs(y[0]),
                           root_finder=optx.Newton(rtol=1e-12, atol=1e-12))
         return dfx.diffeqsolve(dfx.ODETerm(rod_vf), dfx.Tsit5(), 0.0, t1, None, y, args=p,
                                stepsize_controller=dfx.PIDController(rtol=rtol, atol=atol),
                                saveat=dfx.SaveAt(t0=True, t1=True), max_steps=100_000,
-                               event=event)
+                               event=event, throw=throw)
+
+    # The hand-written programs as written (`throw=True`: diffrax's runtime check, a host
+    # callback, which also makes XLA:CPU run the program on the calling thread), and without
+    # the check (`throw=False`, as jaxdyn's programs: a program XLA estimates at 1000
+    # operations or more then runs on a worker thread).
+    def hands(fn, *args):
+        return tuple(jax.jit(lambda *a, throw=throw: fn(*a, throw=throw)) for throw in
+                     (True, False)), args
 
     cases = {
-        "free_body": (scene, y0, 20.0, lambda: hand_free(y0["omega"], inertia, 20.0), "omega"),
+        "free_body": (scene, y0, 20.0, hands(hand_free, y0["omega"], inertia, 20.0), "omega"),
         "falling_rod": (rscene, r0, 10.0,
-                        lambda: hand_rod(jnp.stack([r0["theta"], r0["theta_dot"]]),
-                                         (rod.length, rod.g), 10.0), "normal_force"),
+                        hands(hand_rod, jnp.stack([r0["theta"], r0["theta_dot"]]),
+                              (rod.length, rod.g), 10.0), "normal_force"),
     }
-    for name, (sc, y, t1, hand, output) in cases.items():
+    for name, (sc, y, t1, ((hand_jit, quiet_jit), hand_args), output) in cases.items():
+        def hand(hand_jit=hand_jit, hand_args=hand_args):
+            return hand_jit(*hand_args)
+
         sim_us = _median_us(lambda sc=sc, y=y, t1=t1: jd.simulate(sc, y, t1, rtol=rtol),
                             repeats)
         hand_us = _median_us(hand, repeats)
+        quiet_us = _median_us(lambda q=quiet_jit, a=hand_args: q(*a), repeats)
         traj = jd.simulate(sc, y, t1, rtol=rtol)
         sol = hand()
         # jaxdyn's own compiled program, called directly (no host checks, no Trajectory).
         leaves, treedef = jax.tree_util.tree_flatten(sc)
         key = next(k for k in _simulate._PROGRAMS if k[:2] == ("simulate", treedef))
         prog = _simulate._PROGRAMS[key]
-        args = (leaves, y, np.asarray(0.0), np.asarray(t1), None, np.asarray(rtol),
-                np.asarray(0.0))
+        args = (leaves, y, np.array([0.0, t1, rtol, 0.0]), None)  # (t0, t1, rtol, atol)
         prog_us = _median_us(lambda prog=prog, args=args: prog(*args), repeats)
+        cost = prog.jitted.lower(*args).compile().cost_analysis()
+        hand_cost = quiet_jit.lower(*hand_args).compile().cost_analysis()
+        cost, hand_cost = (c[0] if isinstance(c, list) else c for c in (cost, hand_cost))
         outputs_program = jax.jit(jax.vmap(sc.outputs))
         out_prog_us = _median_us(lambda traj=traj: outputs_program(traj.ts, traj.ys), repeats)
         out_us = _median_us(lambda traj=traj, output=output: getattr(traj, output), repeats)
@@ -206,6 +223,10 @@ def calls(repeats):
         out[name] = {
             "simulate_us": sim_us, "hand_jit_diffeqsolve_us": hand_us,
             "simulate_over_hand": sim_us / hand_us,
+            "hand_without_check_us": quiet_us, "simulate_over_hand_without_check":
+                sim_us / quiet_us,
+            "jaxdyn_program_flops": cost.get("flops"),
+            "hand_without_check_flops": hand_cost.get("flops"),
             "jaxdyn_program_us": prog_us, "simulate_over_program": sim_us / prog_us,
             "steps": int(traj.stats["num_steps"]), "hand_steps": int(sol.stats["num_steps"]),
             "final_state_difference": float(np.max(np.abs(final_ours[:final_hand.size]

@@ -36,16 +36,33 @@ that starts from rest) is held at a large value at that instant, and wherever it
 tolerance of their scaled values (`1e-8` in float64) are all reported as fired, and
 `switch_mode` sets their priority.
 
+**Time on the unit interval.** Under jaxdyn's own error control (`ScaledPIDController`) with a
+Runge-Kutta solver, each segment from `t_s` to `t_stop` is integrated in `tau = (t - t_s) /
+(t_stop - t_s)`, from the constant 0 to the constant 1 (`Unit`): the vector field is multiplied
+by the span, and times handed in and out (events, samples, dense output, the end) are mapped.
+The steps are those taken in `t` (a Runge-Kutta step and the error control are invariant under
+an affine change of time; the first step is chosen in units of the time scale either way), up
+to round-off. What it buys is a smaller program: diffrax computes the point 100 ULPs below the
+end of its interval at the start of every solve (100 `nextafter`s, about 1400 of the 2000
+operations of XLA's cost estimate of a small solve); on constant ends XLA folds them away, and
+XLA:CPU runs a program estimated below 1000 operations on the calling thread instead of
+handing it to a worker thread and waking the caller when it is done (about 40 us a call on a
+busy 2-core machine: most of what a short `simulate` cost beyond a hand-written `jax.jit` of
+`diffeqsolve`, whose runtime error check, a host callback, also runs it on the calling thread).
+
 Limitation (of any event detection that looks at the signs at step ends): an event function
 that dips below zero and comes back within one step is missed. This matters only near a
 tangency (a friction ratio whose peak just touches `mu_s`); tighter tolerances resolve it.
 """
+
+from typing import Any
 
 import diffrax as dfx
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import optimistix as optx
+from jaxtyping import Array
 
 from ._outcome import MESSAGES, Outcome, from_diffrax, is_success
 from ._solution import MergedInterpolation, Trajectory, too_many_switches
@@ -60,6 +77,44 @@ _BIG = 1e6
 
 def finite(y) -> jax.Array:
     return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree_util.tree_leaves(y)]))
+
+
+class Unit(eqx.Module):
+    """A segment from `start` to `stop` on the unit interval: `tau = (t - start) / span`
+    (module docstring). A segment of zero span (a batch member that ended, under `vmap`) stays
+    where it is: its vector field is zero."""
+
+    start: Array
+    stop: Array
+
+    @property
+    def span(self):
+        return self.stop - self.start
+
+    def safe_span(self):  # (a divisor)
+        return jnp.where(self.span > 0, self.span, jnp.ones_like(self.span))
+
+    def time(self, tau):
+        """`t` at `tau`: exactly `stop` at 1, never past it before."""
+        t = self.start + tau * self.span
+        return jnp.where(tau == 1, self.stop, jnp.where(tau < 1, jnp.minimum(t, self.stop), t))
+
+    def tau(self, t):
+        return (t - self.start) / self.safe_span()
+
+    def vector_field(self, vector_field):
+        """`vector_field(t, y, args)` as a function of `tau`."""
+        return _OnUnit(vector_field, self.start, self.span)
+
+
+class _OnUnit(eqx.Module):
+    vector_field: Any
+    start: Array
+    span: Array
+
+    def __call__(self, tau, y, args):
+        dy = self.vector_field(self.start + tau * self.span, y, args)
+        return jax.tree.map(lambda d: d * self.span.astype(d.dtype), dy)
 
 
 class Watch:
@@ -77,7 +132,7 @@ class Watch:
     def values(self, t, y):
         return jnp.stack([jnp.asarray(self.fns[n](t, y), self.dtype) for n in self.names])
 
-    def condition(self, t_s, zero):
+    def condition(self, t_s, zero, unit=None):
         """The segment's condition: the earliest zero of any event. An event at zero when the
         segment starts (it just ended the previous one) is held at `_BIG` at that instant and
         wherever it is exactly zero (an equilibrium: the upright rod on a floor without
@@ -86,23 +141,29 @@ class Watch:
         (the same on the time and on the condition) is relative to it in both. (diffrax
         compares the condition with a Python float: it is returned in the default float.)"""
         ret = jnp.result_type(float)
+        scale = self.scale(unit)
 
         def cond(t, y, args, **kwargs):
+            t = t if unit is None else unit.time(t)
             v = self.values(t, y)
             held = zero & ((t <= t_s) | (v == 0))
-            return (self.time_scale * jnp.min(jnp.where(held, _BIG, v))).astype(ret)
+            return (scale * jnp.min(jnp.where(held, _BIG, v))).astype(ret)
 
         return cond
 
-    def event(self, t_s, y_s) -> dfx.Event:
+    def scale(self, unit):
+        """The time scale in the segment's own time (`unit`: on the unit interval)."""
+        return self.time_scale if unit is None else self.time_scale / unit.safe_span()
+
+    def event(self, t_s, y_s, unit=None) -> dfx.Event:
         return dfx.Event(
-            cond_fn=self.condition(t_s, self.values(t_s, y_s) <= 0),
+            cond_fn=self.condition(t_s, self.values(t_s, y_s) <= 0, unit),
             # Bracketed by the step in which the sign changed (module docstring). The condition
             # falls through zero across it (flip=True: decreasing), which also serves batch
             # members without an event under `vmap` (diffrax hands them the distance to the
             # end of the step, zero at its upper end).
             root_finder=optx.Bisection(rtol=self.root_tol,
-                                       atol=self.root_tol * self.time_scale, flip=True),
+                                       atol=self.root_tol * self.scale(unit), flip=True),
             direction=False,
         )
 
@@ -168,6 +229,10 @@ class _Run:
             solver = eqx.tree_at(lambda s: s.scan_kind, solver, "lax",
                                  is_leaf=lambda x: x is None)
         self.solver = solver
+        # Segments on the unit interval (module docstring), where the solver sees time only
+        # through the vector field.
+        self.unit = (isinstance(controller, ScaledPIDController)
+                     and isinstance(solver, dfx.AbstractRungeKutta))
 
     def start(self, y0):
         """The carry at `t0`."""
@@ -194,40 +259,57 @@ class _Run:
         """`diffrax.diffeqsolve` over one segment from the carry's time and state; the segment's
         end, its samples (`Samples`' buffer and count, or diffrax's), its dense table."""
         t_s, y_s, ts = c["t"], c["y"], self.ts
-        solver, controller = self.solver, self.controller
+        solver, controller, term, dt0 = self.solver, self.controller, self.term, self.dt0
+        # (The ends as values of the run, never folded into constants, as the tolerances in
+        # `ScaledPIDController.bind`: a call under the caller's `jit` takes the same steps to
+        # the bit as a concrete call.)
+        unit = Unit(*jax.lax.optimization_barrier((t_s, t_stop))) if self.unit else None
         if isinstance(controller, ScaledPIDController):  # error control in the segment's own
             controller = controller.bind(self.scene, t_s, t_stop, y_s)  # natural scales
+        if unit is None:
+            start, stop, times = t_s, t_stop, lambda t: t
+        else:
+            controller = controller.on_unit_interval(t_s, unit.span)
+            term = dfx.ODETerm(unit.vector_field(self.scene.vector_field))
+            start, stop, times = jnp.zeros_like(t_s), 1.0, unit.tau
+            dt0 = None if dt0 is None else dt0 / unit.safe_span()
         # Written from each accepted step into buffers in the controller's state (see
         # `_accepted`): the samples at `ts`, the dense table.
         writers = {}
         subs = [dfx.SubSaveAt(t1=True)]
         if self.sampled:
-            writers["samples"] = Samples(self.ts_padded, c["ys"], c["index"])
+            writers["samples"] = Samples(times(self.ts_padded), c["ys"], c["index"])
         elif ts is not None:
-            subs.insert(0, dfx.SubSaveAt(ts=jnp.clip(ts, t_s, t_stop)))
+            subs.insert(0, dfx.SubSaveAt(ts=times(jnp.clip(ts, t_s, t_stop))))
         if self.record:
-            writers["table"] = Table(c["table"])
+            writers["table"] = Table(c["table"], unit)
         if writers:
             controller = Writing(controller, writers, solver.interpolation_cls)
             solver = Reporting(solver)
         sol = dfx.diffeqsolve(
-            self.term, solver, t_s, t_stop, self.dt0, y_s,
+            term, solver, start, stop, dt0, y_s,
             args=self.scene,  # solvers that exploit the scene's structure (splittings) read it
             saveat=dfx.SaveAt(subs=subs, dense=self.diffrax_dense,
                               controller_state=bool(writers)),
             stepsize_controller=controller, max_steps=self.max_steps, adjoint=self.adjoint,
-            event=None if self.watch is None else self.watch.event(t_s, y_s),
+            event=None if self.watch is None else self.watch.event(t_s, y_s, unit),
             progress_meter=self.meter, throw=False,
         )
         written = sol.controller_state[1] if writers else {}
         saved = written["samples"] if self.sampled else None if ts is None else sol.ys[0]
-        return sol, saved, written.get("table")
+        t_e = sol.ts[-1][0]
+        interpolation = sol.interpolation
+        if unit is not None:
+            t_e = unit.time(t_e)
+            if interpolation is not None:  # (its dense information is per step: unchanged)
+                interpolation = eqx.tree_at(lambda i: (i.ts, i.t0_if_trivial), interpolation,
+                                            (unit.time(interpolation.ts), t_s))
+        return sol, t_e, interpolation, saved, written.get("table")
 
     def segment(self, c):
         """One segment: integrate to the next event (or `t1`), switch, save, count."""
         live = ~c["done"]  # False only for batch members that ended, under `vmap`
-        sol, saved, table = self.solve(c, jnp.where(live, self.t1, c["t"]))
-        t_e = sol.ts[-1][0]
+        sol, t_e, interpolation, saved, table = self.solve(c, jnp.where(live, self.t1, c["t"]))
         y_e = jax.tree.map(lambda a: a[0], sol.ys[-1])
         ok = (sol.result == dfx.RESULTS.successful) | (sol.result == dfx.RESULTS.event_occurred)
         new = dict(c, t=t_e, y=y_e, done=jnp.asarray(True))
@@ -256,7 +338,7 @@ class _Run:
         if self.record:
             new["table"] = table
         if self.diffrax_dense:
-            new["interpolation"] = sol.interpolation
+            new["interpolation"] = interpolation
         return new
 
     def loop(self, c):

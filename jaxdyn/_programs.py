@@ -106,12 +106,17 @@ class StoredProgram:
         self.calls: dict = {}
 
     def __call__(self, *args):
+        return self.resolve(*args)(*args)
+
+    def resolve(self, *args):
+        """The callable for arguments of this signature (their structure, shapes and dtypes):
+        a caller that holds it skips working the signature out on each call."""
         leaves, in_tree = jax.tree_util.tree_flatten(args)
         key = (in_tree, _signature(leaves))
         call = self.calls.get(key)
         if call is None:  # decided once per signature in a process
             call = self.calls[key] = self._load(args, key)
-        return call(*args)
+        return call
 
     def _load(self, args, key):
         """The program for this signature: deserialised from disk, or exported and stored

@@ -1,6 +1,7 @@
 """`simulate`: one entry point over `diffrax.diffeqsolve` for every scene."""
 
 import functools
+import math
 
 import diffrax as dfx
 import equinox as eqx
@@ -13,6 +14,7 @@ from ._body import AbstractBody
 from ._custom_types import State
 from ._hybrid import finite, integrate
 from ._outcome import Outcome
+from ._programs import _signature
 from ._scene import Scene
 from ._solution import (  # noqa: F401  (_PROGRAMS: read by benchmarks/latency.py)
     _PROGRAMS,
@@ -207,7 +209,13 @@ def simulate(
 
 _FIELDS = ("ts", "ys", "t_final", "y_final", "event", "result", "outcome", "stats",
            "interpolation")
-_CHECKED: set = set()  # (scene structure, state layout) pairs whose layout was checked
+_OUTCOME = _FIELDS.index("outcome")
+# The fast path's memory: per scene structure (its tree and its leaves' shapes and dtypes), a
+# dict from the call's state layout, sample count and options to what was worked out for them
+# once (the layout checked, the dtype, the program's callable); and the last scene called, with
+# its leaves and that dict, so that a loop over calls does not take the scene apart each time.
+_STRUCTURES: dict = {}
+_LAST: list = [None, None, None]
 
 
 def _check_state_values(scene: Scene, y0) -> None:
@@ -226,24 +234,35 @@ def _fast_simulate(scene, y0, t1, t0, ts, rtol, atol, max_steps, events, dense):
     host in numpy (the layout once per structure), then one `jax.jit` program per structure,
     dispatched with arrays only. `None` where the general path is needed (traced values,
     Python functions in the scene, unusual types)."""
-    if not isinstance(scene, Scene) or not isinstance(y0, dict) or not isinstance(
-            max_steps, int) or isinstance(max_steps, bool) or max_steps <= 0:
+    if not isinstance(scene, Scene) or type(y0) is not dict or type(max_steps) is not int \
+            or max_steps <= 0:
         return None
-    leaves, treedef = jax.tree_util.tree_flatten(scene)
+    if _LAST[0] is scene:
+        leaves, known = _LAST[1], _LAST[2]
+    else:
+        leaves, treedef = jax.tree_util.tree_flatten(scene)
+        if not _concrete_arrays(*leaves):
+            return None
+        known = _STRUCTURES.setdefault((treedef, _signature(leaves)), {})
+        _LAST[:] = scene, leaves, known
     values = list(y0.values())
-    times = [t for t in (t0, t1) if not isinstance(t, float | int | np.floating)]
-    if not _concrete_arrays(*leaves, *values, *times) or any(np.ndim(t) for t in times) \
-            or isinstance(ts, jax.core.Tracer):
+    if not _concrete_arrays(*values) or isinstance(ts, jax.core.Tracer):
         return None
-    layout = (treedef, tuple((k, np.shape(v), v.dtype) for k, v in y0.items()))
-    if layout not in _CHECKED:
+    for t in (t0, t1):
+        if not isinstance(t, float | int | np.floating) and (
+                not _concrete_arrays(t) or np.ndim(t)):
+            return None
+    layout = tuple((k, v.shape, v.dtype) for k, v in y0.items())
+    checked = known.get(layout)
+    if checked is None:
         y0 = scene.check_state(y0)  # raises on a wrong layout
         dtype = jnp.result_type(*jax.tree_util.tree_leaves(y0))
         if not jnp.issubdtype(dtype, jnp.floating) or len({v.dtype for v in y0.values()}) > 1:
             return None
-        _CHECKED.add(layout)
-    dtype = values[0].dtype
-    if type(scene.body).state_checks is not AbstractBody.state_checks:
+        checked = known[layout] = (
+            values[0].dtype, type(scene.body).state_checks is not AbstractBody.state_checks)
+    dtype, state_checks = checked
+    if state_checks:
         _check_state_values(scene, y0)  # (its own checks assume finite values)
     # Otherwise the initial state's finiteness is checked inside the program (see below).
     t0f, t1f = float(t0), float(t1)
@@ -252,43 +271,53 @@ def _fast_simulate(scene, y0, t1, t0, ts, rtol, atol, max_steps, events, dense):
         ts = np.asarray(ts, dtype)
         _check_ts(ts, t0f, t1f)
     rtol, atol = _host_tolerances(rtol, atol, dtype)
-    def build(treedef):
-        def simulate_program(leaves, y0, t0, t1, ts, rtol, atol):
-            scene = jax.tree_util.tree_unflatten(treedef, leaves)
-            traj = _simulate_impl(
-                scene, y0, t0, t1, ts, solver=dfx.Tsit5(),
-                controller=ScaledPIDController(rtol=rtol, atol=atol), dt0=None,
-                max_steps=max_steps, adjoint=dfx.RecursiveCheckpointAdjoint(), events=events,
-                meter=dfx.NoProgressMeter(), dense=dense, checks=False, solver_saves=True)
-            # A non-finite initial state fails the run as invalid input; the host then names
-            # the field (cheaper than reading each state array back before the run).
-            outcome = jnp.where(finite(y0), traj.outcome, jnp.int32(Outcome.invalid_input))
-            return tuple(outcome if name == "outcome" else getattr(traj, name)
-                         for name in _FIELDS)
-
-        return simulate_program
-
-    program = _structure_program("simulate", treedef, (max_steps, bool(events), bool(dense)),
-                                 build)
-    out = program(leaves, y0, np.asarray(t0f, dtype), np.asarray(t1f, dtype), ts,
-                  np.asarray(rtol, dtype), np.asarray(atol, dtype))
+    # The times and tolerances in one array: one transfer instead of four.
+    times = np.array([t0f, t1f, rtol, atol], dtype)
+    key = (layout, None if ts is None else ts.shape, max_steps, bool(events), bool(dense))
+    call = known.get(key)
+    if call is None:
+        treedef = jax.tree_util.tree_structure(scene)
+        options = (max_steps, bool(events), bool(dense))
+        program = _structure_program("simulate", treedef, options,
+                                     lambda treedef: _build(treedef, *options))
+        call = known[key] = program.resolve(leaves, y0, times, ts)
+    out = call(leaves, y0, times, ts)
     # Built as equinox unflattens a module (its fields were checked inside the program), not
     # through `__init__`: the scene is the caller's own, not a copy from the device.
     traj = object.__new__(Trajectory)
     object.__setattr__(traj, "scene", scene)
     for name, value in zip(_FIELDS, out):
         object.__setattr__(traj, name, value)
-    if int(traj.outcome) not in _SUCCESS:
+    if int(np.asarray(out[_OUTCOME])) not in _SUCCESS:  # (`int()` of a jax array: 10 us more)
         _check_state_values(scene, y0)  # raises where the initial state was not finite
         raise_on_failure(traj)
     return traj
+
+
+def _build(treedef, max_steps, events, dense):
+    """The fast path's program for one scene structure and options."""
+    def simulate_program(leaves, y0, times, ts):
+        scene = jax.tree_util.tree_unflatten(treedef, leaves)
+        t0, t1, rtol, atol = times
+        traj = _simulate_impl(
+            scene, y0, t0, t1, ts, solver=dfx.Tsit5(),
+            controller=ScaledPIDController(rtol=rtol, atol=atol), dt0=None,
+            max_steps=max_steps, adjoint=dfx.RecursiveCheckpointAdjoint(), events=events,
+            meter=dfx.NoProgressMeter(), dense=dense, checks=False, solver_saves=True)
+        # A non-finite initial state fails the run as invalid input; the host then names
+        # the field (cheaper than reading each state array back before the run).
+        outcome = jnp.where(finite(y0), traj.outcome, jnp.int32(Outcome.invalid_input))
+        return tuple(outcome if name == "outcome" else getattr(traj, name)
+                     for name in _FIELDS)
+
+    return simulate_program
 
 
 _SUCCESS = (Outcome.completed, Outcome.event)
 
 
 def _check_span(t0: float, t1: float, dtype) -> None:
-    if not (np.isfinite(t0) and np.isfinite(t1)):
+    if not (math.isfinite(t0) and math.isfinite(t1)):
         raise ParameterError(f"t0={t0:g}, t1={t1:g}: times must be finite")
     if not t1 > t0:
         raise ParameterError(f"t1={t1:g}: must be greater than t0={t0:g}")

@@ -52,6 +52,8 @@ class ScaledPIDController(dfx.AbstractAdaptiveStepSizeController):
     norm: Callable[[PyTree], Any] = optx.rms_norm
     scales: dict | None = None
     time_scale: Any = None
+    start: Any = None  # a run on the unit interval (`on_unit_interval`): its start and span
+    span: Any = None
 
     def bind(self, scene, t0, t1, y0) -> "ScaledPIDController":
         """This controller for a run of `scene` from `y0` over `[t0, t1]`: the natural scales
@@ -60,13 +62,25 @@ class ScaledPIDController(dfx.AbstractAdaptiveStepSizeController):
         gives what diffrax hands `atol` to, the nonlinear solves of implicit solvers, an
         absolute tolerance in the state's units."""
         scales, time_scale = scene.natural_scales(t0, t1, y0)
-        floor = jnp.where(self.rtol > 0, self.atol / (FLOOR * self.rtol), 0.0)
+        # The tolerances as values of the run, never folded into the program as constants: a
+        # call under the caller's `jit` (constant tolerances) then takes the same steps, to
+        # the bit, as a concrete call (tolerances passed to its program), which a spin about
+        # the intermediate axis, amplifying round-off 1e8-fold, shows.
+        rtol, atol = jax.lax.optimization_barrier((jnp.asarray(self.rtol),
+                                                   jnp.asarray(self.atol)))
+        floor = jnp.where(rtol > 0, atol / (FLOOR * rtol), 0.0)
         scales = {k: jnp.maximum(s, floor.astype(s.dtype)) for k, s in scales.items()}
         scales, time_scale = jax.lax.stop_gradient((scales, time_scale))
         smallest = jnp.min(jnp.stack([jnp.min(s) for s in scales.values()]))
-        return ScaledPIDController(rtol=self.rtol,
-                                   atol=jnp.maximum(self.atol, FLOOR * self.rtol * smallest),
+        return ScaledPIDController(rtol=rtol, atol=jnp.maximum(atol, FLOOR * rtol * smallest),
                                    norm=self.norm, scales=scales, time_scale=time_scale)
+
+    def on_unit_interval(self, start, span) -> "ScaledPIDController":
+        """This (bound) controller for the run in the time `tau = (t - start) / span`, from 0 to
+        1 (see `jaxdyn._hybrid`): the same steps, their underflow still judged in `t`."""
+        return ScaledPIDController(rtol=self.rtol, atol=self.atol, norm=self.norm,
+                                   scales=self.scales, time_scale=self.time_scale, start=start,
+                                   span=span)
 
     def _inner(self) -> dfx.PIDController:
         return dfx.PIDController(rtol=self.rtol, atol=FLOOR * self.rtol, norm=self.norm)
@@ -78,6 +92,8 @@ class ScaledPIDController(dfx.AbstractAdaptiveStepSizeController):
         if self.scales is None:
             raise ValueError("ScaledPIDController: bind it to the run first (bind)")
         scales, T = self.scales, self.time_scale
+        if self.span is not None:  # the time scale in units of the span
+            T = T / jnp.where(self.span > 0, self.span, jnp.ones_like(self.span))
 
         # The first step is chosen as diffrax chooses it (Hairer, Norsett & Wanner), on the
         # dimensionless state and in units of the time scale: their rule mixes powers of time
@@ -110,7 +126,10 @@ class ScaledPIDController(dfx.AbstractAdaptiveStepSizeController):
         # resolves the time, at round-off of `max(|t|, T)`. Reported as `nonfinite` where the
         # rejected step was not finite, as `dt_min_reached` otherwise.
         eps = jnp.finfo(jnp.result_type(t1)).eps
-        underflow = ~keep & (t_after - t_next <= underflow_step(t1, self.time_scale, eps))
+        step, t = t_after - t_next, t1
+        if self.span is not None:
+            step, t = step * self.span, self.start + t1 * self.span
+        underflow = ~keep & (step <= underflow_step(t, self.time_scale, eps))
         R = dfx.RESULTS
         result = R.where(underflow, R.where(finite, R.dt_min_reached, R.nonfinite), result)
         return keep, t_next, t_after, jump, state, result

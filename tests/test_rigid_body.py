@@ -22,8 +22,9 @@ import jaxdyn as jd
 TIGHT = dict(rtol=1e-12, atol=1e-13)
 # Simulation against the closed form through flips of a spin about the intermediate axis: an
 # error made near a saddle grows like exp(sigma t) until the next one, so at rtol = 1e-12 the
-# rates agree only to a few 1e-9.
-FLIPS = 1e-8
+# rates agree only to 2e-9..1e-7 of the rate 2 (the round-off of each run decides where: the
+# largest error over ten initial conditions 5% apart, measured at 069c366 and after).
+FLIPS = 2e-7
 
 
 def _random_bodies(n, seed):

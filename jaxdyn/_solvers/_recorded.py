@@ -23,11 +23,14 @@ class Table(eqx.Module):
     `rows` (the number written). Its state is the table."""
 
     table: dict[str, Any]
+    unit: Any = None  # a segment on the unit interval (`jaxdyn._hybrid.Unit`): times mapped
 
     def init(self, t0, y0):
         return self.table
 
     def write(self, table, t0, t1, dense_info, interpolation, keep):
+        if self.unit is not None:  # (the dense information is per step: unchanged)
+            t0, t1 = self.unit.time(t0), self.unit.time(t1)
         rows = table["t_lo"].size
         at, fits = jnp.minimum(table["rows"], rows - 1), table["rows"] < rows
 
