@@ -360,16 +360,10 @@ inertia = [0.01, 0.01, 0.01]
 """
 
 
-def wheels_row(samples: int, seed: int) -> dict:
-    """Spacecraft telemetry of `samples` rows at 10 Hz fitted by `jaxdyn fit` (see the
-    module's docstring)."""
-    import contextlib
-    import io
-    import tempfile
-    from pathlib import Path
-
-    from jaxdyn._cli import main as cli
-
+def wheels_record(samples: int, seed: int) -> dict:
+    """The spacecraft-telemetry record of `--wheels` (see the module's docstring): the true
+    tensor and initial state, the scene with its commanded torques, and the sensors' readings
+    (`gyro`, `star`, `tach`, `held`: the command held at each sample)."""
     rng = np.random.default_rng(seed)
     tensor = np.array([[2.1, 0.08, -0.05], [0.08, 2.6, 0.12], [-0.05, 0.12, 3.3]])
     ts = np.arange(samples) / 10.0
@@ -405,13 +399,36 @@ def wheels_row(samples: int, seed: int) -> dict:
     star = np.asarray(jax.vmap(jd.quat_multiply)(record.ys["quaternion"], turn))
     star = star * rng.choice([-1.0, 1.0], size=(samples, 1))
     held = commands[np.searchsorted(times, ts, side="right") - 1]
+    return {"tensor": tensor, "truth": truth, "y0": y0, "ts": ts, "t1": t1, "bias": bias,
+            "gyro": gyro, "star": star, "tach": tach, "held": held, "states": record.ys,
+            "simulate_first_s": first_sim_s, "simulate_s": statistics.median(sims)}
+
+
+def write_wheels_csv(path, rec: dict) -> None:
+    """The record's CSV, as `jaxdyn fit` reads it."""
+    header = ("t,wx,wy,wz,q0,q1,q2,q3,wheel1_speed,wheel2_speed,wheel3_speed,"
+              "wheel1_torque,wheel2_torque,wheel3_torque")
+    np.savetxt(path, np.column_stack([rec["ts"], rec["gyro"], rec["star"], rec["tach"],
+                                      rec["held"]]),
+               delimiter=",", header=header, comments="")
+
+
+def wheels_row(samples: int, seed: int) -> dict:
+    """Spacecraft telemetry of `samples` rows at 10 Hz fitted by `jaxdyn fit` (see the
+    module's docstring)."""
+    import contextlib
+    import io
+    import tempfile
+    from pathlib import Path
+
+    from jaxdyn._cli import main as cli
+
+    rec = wheels_record(samples, seed)
+    tensor, t1 = rec["tensor"], rec["t1"]
     with tempfile.TemporaryDirectory() as tmp:
         scene_path, csv_path = Path(tmp) / "spacecraft.toml", Path(tmp) / "telemetry.csv"
         scene_path.write_text(WHEELS_SCENE)
-        header = ("t,wx,wy,wz,q0,q1,q2,q3,wheel1_speed,wheel2_speed,wheel3_speed,"
-                  "wheel1_torque,wheel2_torque,wheel3_torque")
-        np.savetxt(csv_path, np.column_stack([ts, gyro, star, tach, held]), delimiter=",",
-                   header=header, comments="")
+        write_wheels_csv(csv_path, rec)
         argv = ["fit", str(csv_path), "--scene", str(scene_path), "--bias", "omega",
                 "--restarts", "1", "--set", "rtol=1e-8", "--no-progress", "--json"]
         runs = []
@@ -426,7 +443,7 @@ def wheels_row(samples: int, seed: int) -> dict:
         first_s, fit_s = runs[0], runs[-1]
     row = {"samples": samples, "t1": t1, "status": status, "first_fit_s": first_s,
            "fit_s": fit_s,
-           "simulate_first_s": first_sim_s, "simulate_s": statistics.median(sims),
+           "simulate_first_s": rec["simulate_first_s"], "simulate_s": rec["simulate_s"],
            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
     row["fit_over_simulate"] = fit_s / row["simulate_s"]
     if status != 0:

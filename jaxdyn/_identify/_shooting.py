@@ -60,10 +60,16 @@ class Segments:
     first: np.ndarray  # index of each segment's first sample in the record
 
 
-def cut(ts: np.ndarray, obs: dict[str, np.ndarray], count: int, bucket: int = 8) -> Segments:
-    """Cut a record into `count` segments of equal duration (fewer where a segment would hold
-    no samples; each holds at least two)."""
-    edges = ts[0] + (ts[-1] - ts[0]) * np.arange(count) / count
+def cut(ts: np.ndarray, obs: dict[str, np.ndarray], count: int, bucket: int = 8,
+        clock: np.ndarray | None = None) -> Segments:
+    """Cut a record into `count` segments of equal duration, or of equal increments of
+    `clock` (a nondecreasing reading at each sample, as the natural time; fewer where a
+    segment would hold no samples; each holds at least two)."""
+    if clock is None or not clock[-1] > clock[0]:
+        edges = ts[0] + (ts[-1] - ts[0]) * np.arange(count) / count
+    else:
+        marks = clock[0] + (clock[-1] - clock[0]) * np.arange(count) / count
+        edges = np.interp(marks, clock, ts)
     starts = np.unique(np.searchsorted(ts, edges, side="left"))
     ends = np.append(starts[1:], ts.size)
     while starts.size > 1 and ends[-1] - starts[-1] < 2:  # too short: merged into the previous
@@ -160,7 +166,7 @@ def linearise(problem, lay, p, s, smaps, seg_ts, seg_data, seg_w, has_next, wc, 
     """Per-segment blocks at `(p, s)`: data normal matrix `N` and gradient `g` over `(p,
     s_k)`, sums of squares of each output `ss`, the weighted continuity defect `d` with its
     Jacobians `P` (on `p`), `G` (on `s_k`) and `E` (on `s_{k+1}`). Without `jacobian`, only
-    `ss` and `d`."""
+    `ss`, `d` and the weighted data residuals `r`."""
     n_p = p.shape[0]
     dyn, static = eqx.partition(smaps, eqx.is_array)
     shift = lambda x: jnp.concatenate([x[1:], x[-1:]])  # noqa: E731
@@ -199,7 +205,7 @@ def linearise(problem, lay, p, s, smaps, seg_ts, seg_data, seg_w, has_next, wc, 
         offsets = np.cumsum([0] + widths)
         ss = jnp.stack([jnp.sum(rd[a:b] ** 2) for a, b in zip(offsets[:-1], offsets[1:])])
         if J is None:
-            return {"ss": ss, "d": d}
+            return {"ss": ss, "d": d, "r": rd}
         Jd, Jc = J[:m], J[m:]
         E = jax.jacfwd(lambda sn: lay.defect(end, lay.state(maps_n, sn, problem.dtype))
                        .astype(p.dtype) * wc * hn)(s_n)
@@ -438,6 +444,21 @@ class Shooting:
                 ys[n] = ys[n].at[1:].set(d[1:].astype(ys[n].dtype))
         return ys
 
+    def series(self, problem, r) -> dict[str, np.ndarray]:
+        """The data residuals `r` `(S, m)` of the segments as each output's residuals over
+        the record's samples `(N, width)`, in time order."""
+        from ._fit import _width
+
+        r, valid = np.asarray(r), self.seg.weights > 0
+        out, start = {}, 0
+        for name, kind in zip(problem.outputs, problem.kinds):
+            d = self.seg.data[name]
+            width = _width(kind, d.shape[2:])
+            size = d.shape[1] * width
+            out[name] = r[:, start:start + size].reshape(d.shape[0], d.shape[1], width)[valid]
+            start += size
+        return out
+
     def _lin(self, problem, p, s, smaps, wc, jacobian=True):
         problem = dataclasses.replace(problem, max_steps=self.max_steps)
         return linearise(problem, self.lay, p, s, smaps, self.seg_ts, self.seg_data,
@@ -542,12 +563,14 @@ class Shooting:
                 break
         H, *_ = condense(B, p_free, self.s0_free)
         ss = np.asarray(jnp.sum(B["ss"], axis=0))
+        series = self.series(problem, self._lin(problem, p, s, smaps, wc, jacobian=False)["r"])
         data_loss = 0.5 * float(ss.sum())
         u_fit = self.u_of(p, s, jnp.asarray(u))
         Hu = jnp.asarray(H)[self.z_of_u][:, self.z_of_u]
         return {"loss": data_loss if np.isfinite(data_loss) else np.inf, "u": u_fit,
                 "converged": bool(converged and closed), "iterations": iterations,
                 "history": np.asarray(history), "stages": (0,), "H": Hu, "ss": ss,
+                "series": series,
                 "defect": float(jnp.max(jnp.abs(B["d"])))}
 
 
