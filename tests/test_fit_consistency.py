@@ -16,7 +16,6 @@ from test_identify import FIT_BODY, GUESS, SAMPLES, _attitude_record
 
 import jaxdyn as jd
 from jaxdyn._identify import _fit
-from jaxdyn._identify._shooting import cut
 
 
 def _lag1(r):
@@ -57,7 +56,9 @@ def test_a_missing_bias_is_flagged_and_not_reported_as_converged():
 def test_natural_clock_counts_the_turns_of_a_record_that_spins_up():
     """Rates growing as 0.01 (1 + t) rad/s over 100 s: the record spans the integral of the
     rate, 0.01 (100 + 100^2 / 2) = 51 natural time units, not the 1 that its starting rate
-    alone gives; so it is cut into 6 segments (one per 10 units) of equal natural time."""
+    alone gives (single shooting); so it is fitted by multiple shooting, in segments of equal
+    duration short enough that the fastest spans at most 10 units: 100 s x 1.01 rad/s / 10,
+    rounded up."""
     ts = np.linspace(0.0, 100.0, 2001)
     rate = 0.01 * (1 + ts)
     w = np.stack([rate, 0.3 * rate, np.zeros_like(ts)], axis=1)
@@ -67,8 +68,4 @@ def test_natural_clock_counts_the_turns_of_a_record_that_spins_up():
     clock = _fit._natural_clock(setup.problem, setup.u0, setup.ts, setup.obs)
     exact = 0.01 * (ts + ts**2 / 2)
     assert np.allclose(clock, exact, rtol=0, atol=2e-3 * exact[-1])
-    assert _fit._auto_segments(clock) == 6
-    seg = cut(setup.ts, setup.obs, 6, clock=clock)
-    starts = seg.ts[:, 0]
-    increments = np.diff(0.01 * (np.append(starts, ts[-1]) + np.append(starts, ts[-1]) ** 2 / 2))
-    assert np.allclose(increments, 51 / 6, rtol=0.02), increments
+    assert _fit._auto_segments(clock, setup.ts) == 11

@@ -238,15 +238,15 @@ def _silent_tick(loss) -> None:
 
 
 def _multiple_shooting(problem, setup, count, clock):
-    """The multiple-shooting driver of this problem over `count` segments of equal natural
-    time (`clock`, see `_natural_clock`), or `None` where it does not apply (then the fit is
-    by single shooting)."""
+    """The multiple-shooting driver of this problem over `count` segments (`clock`: the
+    natural time at each sample, see `_natural_clock`), or `None` where it does not apply
+    (then the fit is by single shooting)."""
     from ._shooting import Shooting, cut, layout
 
     found = layout(problem, problem.scene)
     if found is None:
         return None
-    seg = cut(setup.ts, setup.obs, count, clock=clock)
+    seg = cut(setup.ts, setup.obs, count)
     if seg.weights.shape[0] < 3:
         return None
     shooting = Shooting(problem, *found, seg, setup.n_obs)
@@ -834,11 +834,15 @@ def _auto_horizons(clock, ts) -> tuple[float, ...]:
                  for i in range(k)) + (1.0,)
 
 
-def _auto_segments(clock) -> int:
-    """Segments for multiple shooting: one per `_TURNS` natural time units for a record
-    longer than `4 _TURNS`, else 1 (single shooting)."""
-    natural = float(clock[-1])
-    return int(np.ceil(natural / _TURNS)) if natural > 4 * _TURNS else 1
+def _auto_segments(clock, ts) -> int:
+    """Segments for multiple shooting, for a record longer than `4 _TURNS` natural time units
+    (else 1: single shooting): segments of equal duration (inputs that switch at fixed
+    times, as commanded torques, then cost every segment alike, which keeps their batched
+    integrations in step), as many as make the fastest segment span at most `_TURNS`."""
+    if float(clock[-1]) <= 4 * _TURNS:
+        return 1
+    fastest = float(np.max(np.diff(clock) / np.diff(ts)))  # natural time per unit time
+    return int(np.ceil(float(ts[-1] - ts[0]) * fastest / _TURNS))
 
 
 def fit(
@@ -989,7 +993,7 @@ def fit(
     clock = _natural_clock(problem, u0, ts, obs)
     automatic = segments is None and horizons is None
     if segments is None:
-        segments = 1 if horizons is not None else _auto_segments(clock)
+        segments = 1 if horizons is not None else _auto_segments(clock, ts)
     shooting = _multiple_shooting(problem, setup, segments, clock) if segments > 1 else None
     if horizons is None:
         horizons = (1.0,) if shooting is not None else _auto_horizons(clock, ts)

@@ -60,16 +60,10 @@ class Segments:
     first: np.ndarray  # index of each segment's first sample in the record
 
 
-def cut(ts: np.ndarray, obs: dict[str, np.ndarray], count: int, bucket: int = 8,
-        clock: np.ndarray | None = None) -> Segments:
-    """Cut a record into `count` segments of equal duration, or of equal increments of
-    `clock` (a nondecreasing reading at each sample, as the natural time; fewer where a
-    segment would hold no samples; each holds at least two)."""
-    if clock is None or not clock[-1] > clock[0]:
-        edges = ts[0] + (ts[-1] - ts[0]) * np.arange(count) / count
-    else:
-        marks = clock[0] + (clock[-1] - clock[0]) * np.arange(count) / count
-        edges = np.interp(marks, clock, ts)
+def cut(ts: np.ndarray, obs: dict[str, np.ndarray], count: int, bucket: int = 8) -> Segments:
+    """Cut a record into `count` segments of equal duration (fewer where a segment would hold
+    no samples; each holds at least two)."""
+    edges = ts[0] + (ts[-1] - ts[0]) * np.arange(count) / count
     starts = np.unique(np.searchsorted(ts, edges, side="left"))
     ends = np.append(starts[1:], ts.size)
     while starts.size > 1 and ends[-1] - starts[-1] < 2:  # too short: merged into the previous
@@ -430,7 +424,7 @@ class Shooting:
 
         scene, y0 = _scene_and_state(problem, u)
         starts = self.seg_ts[:, 0]
-        steps = max(problem.max_steps, 400 * self.segments)
+        steps = max(problem.max_steps, 2000 * self.segments)
         ys, ok = _simulate_to(problem, scene, y0, starts, max_steps=steps)
         if not bool(ok):
             ys = jax.tree.map(lambda v: jnp.broadcast_to(v, (self.segments,) + v.shape), y0)
