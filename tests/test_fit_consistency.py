@@ -10,9 +10,12 @@ simulation of the fitted scene; the natural clock of a record whose rates grow c
 turns (an integral computed here in closed form).
 """
 
+import json
+
 import jax.numpy as jnp
 import numpy as np
-from test_identify import FIT_BODY, GUESS, SAMPLES, _attitude_record
+from test_cli import run_cli
+from test_identify import FIT_BODY, GUESS, SAMPLES, _attitude_record, write_csv
 
 import jaxdyn as jd
 from jaxdyn._identify import _fit
@@ -51,6 +54,29 @@ def test_a_missing_bias_is_flagged_and_not_reported_as_converged():
     r = np.asarray(traj.omega) - data["omega"]
     assert np.allclose(wrong.residual_autocorrelation["omega"], _lag1(r), atol=1e-4)
     assert np.max(_lag1(r)) > limit
+
+
+def test_cli_flags_a_missing_bias(capsys, tmp_path):
+    """`jaxdyn fit` on biased gyro rates without `--bias`: not converged, the channels named
+    in `systematic_residuals`, one warning line on standard error; with `--bias omega`,
+    none."""
+    ts = np.linspace(0.0, 8.0, SAMPLES)
+    _, w, _, _, _ = _attitude_record(ts)
+    gyro = w + np.array([2e-3, -1e-3, 5e-4])
+    gyro = gyro + 1e-4 * np.random.default_rng(7002).normal(size=w.shape)
+    path = write_csv(tmp_path / "gyro.csv", "t,wx,wy,wz", [ts, gyro])
+    status, out, err = run_cli(capsys, "fit", path, "--scene", "torque-free", "--json")
+    assert status == 0, err
+    out = json.loads(out)
+    assert not out["converged"] and out["systematic_residuals"]
+    assert len(out["residual_autocorrelation"]["omega"]) == 3
+    warnings = [line for line in err.splitlines() if "not white noise" in line]
+    assert len(warnings) == 1, err
+    status, out, err = run_cli(capsys, "fit", path, "--scene", "torque-free", "--bias", "omega",
+                               "--json")
+    out = json.loads(out)
+    assert status == 0 and out["converged"] and out["systematic_residuals"] == [], err
+    assert "not white noise" not in err
 
 
 def test_natural_clock_counts_the_turns_of_a_record_that_spins_up():
