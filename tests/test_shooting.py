@@ -98,6 +98,10 @@ def test_multiple_shooting_gives_the_single_shooting_estimate_and_intervals():
     assert multiple.loss == pytest.approx(single.loss, rel=1e-6)
     assert multiple.residual_rms_by_output == pytest.approx(single.residual_rms_by_output,
                                                             rel=1e-6)
+    # The residuals over the record, reassembled from the segments, are single shooting's.
+    for name, rho in single.residual_autocorrelation.items():
+        assert np.allclose(multiple.residual_autocorrelation[name], rho, atol=1e-6)
+    assert single.systematic == multiple.systematic == ()
 
 
 def test_long_noise_free_record_by_multiple_shooting():

@@ -332,8 +332,17 @@ def run(args) -> int:
                             "momenta in the scene (commanded motor torques, wheel momenta) "
                             "fix the absolute inertia, reported in kg m^2")
     out["converged"] = result.converged
+    out["optimiser_converged"] = result.optimiser_converged
+    out["residual_autocorrelation"] = {k: _number(v)
+                                       for k, v in result.residual_autocorrelation.items()}
+    out["systematic_residuals"] = list(result.systematic)
     out["iterations"] = result.iterations
     out["starts"] = int(result.restart_losses.size)
     out["timing"] = {"fit_s": fit_s, "wall_s": time.perf_counter() - args.t_start}
     emit(out, args.json, title=f"fit {scene_name} to {args.data}")
+    if result.systematic:
+        # The one-line hint, on standard error whatever the format (the note says more).
+        print(f"jaxdyn: warning: the fit is not trustworthy: residuals of "
+              f"{', '.join(result.systematic)} are not white noise (a local minimum, or a "
+              "sensor bias or torque the scene lacks); see notes", file=sys.stderr)
     return 0

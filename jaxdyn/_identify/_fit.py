@@ -244,9 +244,10 @@ def _silent_tick(loss) -> None:
     pass
 
 
-def _multiple_shooting(problem, setup, count):
-    """The multiple-shooting driver of this problem over `count` segments, or `None` where
-    it does not apply (then the fit is by single shooting)."""
+def _multiple_shooting(problem, setup, count, clock):
+    """The multiple-shooting driver of this problem over `count` segments (`clock`: the
+    natural time at each sample, see `_natural_clock`), or `None` where it does not apply
+    (then the fit is by single shooting)."""
     from ._shooting import Shooting, cut, layout
 
     found = layout(problem, problem.scene)
@@ -256,9 +257,9 @@ def _multiple_shooting(problem, setup, count):
     if seg.weights.shape[0] < 3:
         return None
     shooting = Shooting(problem, *found, seg, setup.n_obs)
-    span = float(setup.ts[-1] - setup.ts[0])
-    natural = _natural_span(problem, setup.u0, setup.ts)
-    shooting.prefix = 4 * _TURNS * span / natural if natural > 0 else span / 4
+    ts = setup.ts
+    shooting.prefix = (_time_at(clock, ts, 4 * _TURNS) - float(ts[0]) if clock[-1] > 0
+                       else float(ts[-1] - ts[0]) / 4)
     return shooting
 
 
@@ -460,12 +461,20 @@ class FitResult:
       divided by `sigma` if given); `residual_rms_by_output`: RMS residual of each output, in
       its own units; `noise_variance`: the residual variance `s^2` (of the residuals divided
       by `sigma`).
-    - `converged`, `iterations`: of the best start; `history`: its loss at every iteration
-      (Adam steps, then the polishing method's over each horizon), `stages`: the iterations
-      at which each stage (Adam, then each horizon) begins; `restart_losses`: the final loss
-      of every start that was run.
+    - `converged`: the best start's optimiser converged and its residuals are consistent
+      with a fit at the optimum (white noise: see `systematic`); `optimiser_converged`: the
+      optimiser's own criterion alone; `iterations`: of the best start; `history`: its loss
+      at every iteration (Adam steps, then the polishing method's over each horizon),
+      `stages`: the iterations at which each stage (Adam, then each horizon) begins;
+      `restart_losses`: the final loss of every start that was run.
     - `segments`: the number of segments of the fit (multiple shooting), 1 for single
       shooting.
+    - `residual_autocorrelation`: lag-1 autocorrelation of the residuals of each channel
+      of each output (about `N(0, 1/N)` for white noise over `N` samples); `systematic`:
+      the channels (`"omega[0]"`) whose residuals are far from white (above `4.5 /
+      sqrt(N)`) and above the integration's error floor: a local minimum or a model that
+      lacks an effect (a sensor bias, a torque), said in `notes`; such a fit does not
+      report `converged`.
     - `posterior`: with `fit(posterior=n)`, `n` posterior draws of each quantity of `values`
       (NUTS; shape `(n, *shape)`), else `None`; `posterior_acceptance`: NUTS's mean
       acceptance rate; `posterior_leapfrogs`: its mean number of leapfrog steps per draw
@@ -491,6 +500,9 @@ class FitResult:
     stages: tuple[int, ...]
     restart_losses: np.ndarray
     segments: int = 1
+    optimiser_converged: bool = True
+    residual_autocorrelation: dict[str, np.ndarray] = dataclasses.field(default_factory=dict)
+    systematic: tuple[str, ...] = ()
     posterior: dict[str, np.ndarray] | None = None
     posterior_acceptance: float | None = None
     posterior_leapfrogs: float | None = None
@@ -504,6 +516,72 @@ def _sums_by_output(r, obs, padded, kinds):
         out[name] = float(np.sum(r[start:start + padded * width] ** 2))
         start += padded * width
     return out
+
+
+def _series_by_output(r, obs, padded, kinds):
+    """The residuals of each output `(N, width)` (sample by sample, padding dropped), from
+    the whole residual vector `r` of single shooting."""
+    out, start = {}, 0
+    for (name, d), kind in zip(obs.items(), kinds):
+        width = _width(kind, d.shape[1:])
+        out[name] = r[start:start + padded * width].reshape(padded, width)[:d.shape[0]]
+        start += padded * width
+    return out
+
+
+# Residuals of a fit at the optimum are white noise where the model holds (their lag-1
+# autocorrelation is about N(0, 1/N) over N samples); a local minimum or a model that lacks an
+# effect leaves a smooth misfit, autocorrelated (near 1 where it dominates the noise). A
+# channel is flagged when its lag-1 autocorrelation exceeds `_WHITE_Z / sqrt(N)` (a 4.5-sigma
+# excursion of the null distribution: false alarms about 3e-6 per channel) and its RMS
+# residual exceeds `_MATERIAL` times the integration's `rtol` times the output's size (the
+# floor of a noise-free record, whose residuals are the smooth integration error).
+_WHITE_Z = 4.5
+_MATERIAL = 1e3
+
+
+def _whiteness(series) -> dict[str, np.ndarray]:
+    """Lag-1 autocorrelation of each channel of each output's residuals (`sum r_k r_{k+1} /
+    sum r_k^2`; 1 minus half the Durbin--Watson statistic)."""
+    out = {}
+    for name, r in series.items():
+        r = np.asarray(r, float)
+        num = np.sum(r[1:] * r[:-1], axis=0)
+        den = np.sum(r * r, axis=0)
+        out[name] = np.where(den > 0, num / np.where(den > 0, den, 1.0), 0.0)
+    return out
+
+
+def _data_scale(d, kind) -> float:
+    """The size of an output's data: 1 rad for an attitude (its residuals are rotation
+    angles), else the RMS of its values."""
+    if kind == "rotation":
+        return 1.0
+    size = float(np.sqrt(np.mean(np.square(d))))
+    return size if np.isfinite(size) else 0.0
+
+
+def _systematic(whiteness, series, obs, sigmas, kinds, floors) -> list[str]:
+    """Channels (`"omega[0]"`) whose residuals are not white noise (see `_WHITE_Z`)."""
+    flagged = []
+    for (name, d), sigma, kind in zip(obs.items(), sigmas, kinds):
+        r = np.asarray(series[name], float)
+        n = r.shape[0]
+        limit = _WHITE_Z / np.sqrt(max(n, 1))
+        rms = np.sqrt(np.mean(r * r, axis=0)) * np.max(np.asarray(sigma))  # in data units
+        for i, (rho, size) in enumerate(zip(whiteness[name], rms)):
+            if rho > limit and size > floors[name]:
+                flagged.append(f"{name}[{i}]" if r.shape[1] > 1 else name)
+    return flagged
+
+
+def _systematic_note(flagged, whiteness, n_samples) -> str:
+    worst = max(float(np.max(v)) for v in whiteness.values())
+    return (f"the residuals of {', '.join(flagged)} are not white noise (lag-1 "
+            f"autocorrelation up to {worst:.2f}, against at most "
+            f"{_WHITE_Z / np.sqrt(n_samples):.2g} for white noise over {n_samples} samples): "
+            "a local minimum or a model that lacks an effect (a sensor bias, a torque); "
+            "not reported as converged. Try more restarts, other segments, or --bias")
 
 
 def _rms_by_output(sums, obs, sigmas, kinds):
@@ -707,32 +785,71 @@ def _setup(scene, ts, data, parameters, initial, y0, sigma, rtol, atol, max_step
 _TURNS = 10.0  # the first horizon of a long record, in natural time units (1/W)
 
 
-def _natural_span(problem, u0, ts) -> float:
-    """The record's span in natural time units (`1/W` at the starting point)."""
+_CLOCK_POINTS = 1024  # samples at which the natural clock reads the time scale
+
+
+@eqx.filter_jit
+def _time_scales(scene, y0, t0, t1, measured):
+    """The scene's natural time scale over each `[t0_k, t1_k]`, from `y0` with the state
+    variables of `measured` replaced by their rows (batched)."""
+
+    def one(a, b, row):
+        return scene.natural_scales(a, b, {**y0, **row})[1]
+
+    return jax.vmap(one)(t0, t1, measured)
+
+
+def _natural_clock(problem, u0, ts, obs) -> np.ndarray:
+    """Natural time elapsed at each sample since the first (`1/W` units, `W` the scene's
+    rate scale). Where the data measure state variables (gyro rates), the time scale is read
+    from them along the record (at up to `_CLOCK_POINTS` samples), so a record whose rates
+    grow (commanded slews) counts the turns it makes; else it is the starting point's."""
     scene, y0 = _scene_and_state(problem, u0)
-    span = float(ts[-1] - ts[0])
+    names = [k for k in obs if k in y0 and np.shape(obs[k])[1:] == np.shape(y0[k])]
+    if names:
+        idx = np.unique(np.linspace(0, ts.size - 1, min(ts.size, _CLOCK_POINTS + 1))
+                        .round().astype(int))
+        measured = {k: jnp.asarray(obs[k][idx[:-1]], problem.dtype) for k in names}
+        dt = np.diff(ts[idx])
+        scales = np.asarray(_time_scales(scene, y0, jnp.asarray(ts[idx[:-1]]),
+                                         jnp.asarray(ts[idx[1:]]), measured), float)
+        ok = np.isfinite(scales) & (scales > 0)
+        if np.all(ok):
+            clock = np.concatenate([[0.0], np.cumsum(dt / scales)])
+            return np.interp(ts, ts[idx], clock)
     time_scale = float(scene.natural_scales(ts[0], ts[-1], y0)[1])
     if not np.isfinite(time_scale) or time_scale <= 0:
-        return 0.0
-    return span / time_scale
+        return np.zeros(ts.size)
+    return (ts - ts[0]) / time_scale
 
 
-def _auto_horizons(problem, u0, ts) -> tuple[float, ...]:
+def _time_at(clock, ts, natural: float) -> float:
+    """The time at which the natural clock reads `natural`."""
+    return float(np.interp(natural, clock, ts))
+
+
+def _auto_horizons(clock, ts) -> tuple[float, ...]:
     """Continuation spans for a record of this length: `(0.25, 0.5, 1)` for a short record,
-    else spans doubling from `_TURNS` natural time units (the scene's time scale `1/W` at the
-    starting point) to the whole record."""
-    natural = _natural_span(problem, u0, ts)
+    else spans doubling from `_TURNS` natural time units (see `_natural_clock`) to the whole
+    record."""
+    natural = float(clock[-1])
     if natural <= 4 * _TURNS:
         return (0.25, 0.5, 1.0)
     k = int(np.ceil(np.log2(natural / _TURNS)))
-    return tuple(float(_TURNS * 2.0**i / natural) for i in range(k)) + (1.0,)
+    span = float(ts[-1] - ts[0])
+    return tuple((_time_at(clock, ts, _TURNS * 2.0**i) - float(ts[0])) / span
+                 for i in range(k)) + (1.0,)
 
 
-def _auto_segments(problem, u0, ts) -> int:
-    """Segments for multiple shooting: one per `_TURNS` natural time units for a record
-    longer than `4 _TURNS`, else 1 (single shooting)."""
-    natural = _natural_span(problem, u0, ts)
-    return int(np.ceil(natural / _TURNS)) if natural > 4 * _TURNS else 1
+def _auto_segments(clock, ts) -> int:
+    """Segments for multiple shooting, for a record longer than `4 _TURNS` natural time units
+    (else 1: single shooting): segments of equal duration (inputs that switch at fixed
+    times, as commanded torques, then cost every segment alike, which keeps their batched
+    integrations in step), as many as make the fastest segment span at most `_TURNS`."""
+    if float(clock[-1]) <= 4 * _TURNS:
+        return 1
+    fastest = float(np.max(np.diff(clock) / np.diff(ts)))  # natural time per unit time
+    return int(np.ceil(float(ts[-1] - ts[0]) * fastest / _TURNS))
 
 
 def fit(
@@ -880,11 +997,13 @@ def fit(
     setup = _setup(scene, ts, data, parameters, initial, y0, sigma, rtol, atol, max_steps,
                    bias)
     problem, u0, ts, obs = setup.problem, setup.u0, setup.ts, setup.obs
+    clock = _natural_clock(problem, u0, ts, obs)
+    automatic = segments is None and horizons is None
     if segments is None:
-        segments = 1 if horizons is not None else _auto_segments(problem, u0, ts)
-    shooting = _multiple_shooting(problem, setup, segments) if segments > 1 else None
+        segments = 1 if horizons is not None else _auto_segments(clock, ts)
+    shooting = _multiple_shooting(problem, setup, segments, clock) if segments > 1 else None
     if horizons is None:
-        horizons = (1.0,) if shooting is not None else _auto_horizons(problem, u0, ts)
+        horizons = (1.0,) if shooting is not None else _auto_horizons(clock, ts)
     ts_p, obs_p, weights = setup.ts_p, setup.obs_p, setup.weights
     maps, components, n_obs, dtype = problem.maps, setup.components, setup.n_obs, setup.dtype
     outputs = problem.outputs
@@ -916,14 +1035,19 @@ def fit(
     tol_early = jnp.asarray(max(tol, 1e-4), u0.dtype)
     lr = jnp.asarray(learning_rate, u0.dtype)
 
-    if shooting is not None:
-        # The start of the record (4 x 10/W) is fitted first by single shooting, with its
-        # short-record continuation (a quarter, half, all of it): the basin of a short record.
+    def _prefix(shooting):
+        """The start of the record (4 x 10/W), fitted first by single shooting with its
+        short-record continuation (a quarter, half, all of it): the basin of a short
+        record."""
+        if shooting is None:
+            return None, None, None, None
         n_pre = max(int(np.searchsorted(ts, ts[0] + shooting.prefix, side="right")), 3)
         pre_ts, pre_obs, pre_w = _pad(np.asarray(ts[:n_pre]),
                                       {k: v[:n_pre] for k, v in obs.items()})
-        pre_ts, pre_w = jnp.asarray(pre_ts), jnp.asarray(pre_w)
-        pre_obs = {k: jnp.asarray(v) for k, v in pre_obs.items()}
+        return (n_pre, jnp.asarray(pre_ts), {k: jnp.asarray(v) for k, v in pre_obs.items()},
+                jnp.asarray(pre_w))
+
+    n_pre, pre_ts, pre_obs, pre_w = _prefix(shooting)
 
     def _single(u, horizons, warm_up):
         """Single shooting from `u` over the continuation `horizons`."""
@@ -986,58 +1110,97 @@ def fit(
     def _run_start(u, horizons=horizons, warm_up=True):
         return _multiple(u, warm_up) if shooting is not None else _single(u, horizons, warm_up)
 
-    runs = []
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
+    def _solve():
+        """Every start, the best one (refitted with each output weighted by its own residual
+        scale, with `reweight`), and the check of its residuals."""
+        nonlocal problem
+        runs = []
+        bar = None
+        if progress:
+            from tqdm.auto import tqdm
 
-        total = restarts * (adam_steps + len(horizons) * max_iter
-                            + (max_iter + 10 if shooting is not None else 0))
-        bar = tqdm(total=total, desc="fit", unit="it")
-        _BAR["bar"] = bar
-    try:
-        for u_start in starts:
-            runs.append(_run_start(u_start))
+            total = restarts * (adam_steps + len(horizons) * max_iter
+                                + (max_iter + 10 if shooting is not None else 0))
+            bar = tqdm(total=total, desc="fit", unit="it")
+            _BAR["bar"] = bar
+        try:
+            for u_start in starts:
+                runs.append(_run_start(u_start))
+                if bar is not None:
+                    bar.update(max(0, bar.total // restarts * len(runs) - bar.n))
+                losses = np.array([run["loss"] for run in runs])
+                agreeing = [run["converged"] and run["loss"] <= losses.min() * (1 + 1e-5)
+                            for run in runs]
+                if sum(agreeing) >= agree:
+                    break
+        finally:
             if bar is not None:
-                bar.update(max(0, bar.total // restarts * len(runs) - bar.n))
-            losses = np.array([run["loss"] for run in runs])
-            agreeing = [run["converged"] and run["loss"] <= losses.min() * (1 + 1e-5)
-                        for run in runs]
-            if sum(agreeing) >= agree:
-                break
-    finally:
-        if bar is not None:
-            bar.total = bar.n  # the starts left out after agreement
-            bar.close()
-            _BAR.pop("bar", None)
+                bar.total = bar.n  # the starts left out after agreement
+                bar.close()
+                _BAR.pop("bar", None)
 
-    best = runs[int(np.argmin([run["loss"] for run in runs]))]
-    loss, u = best["loss"], best["u"]
-
-    def normal_and_sums(best, u):
-        """The normal matrix, residual sum of squares and sums by output at the optimum."""
-        if "H" in best:  # multiple shooting's own normal matrix
-            sums = dict(zip(outputs, (float(x) for x in best["ss"])))
-            return best["H"], jnp.asarray(sum(sums.values())), sums
-        r, J = _jacobian(problem, u, ts_p, obs_p, weights)
-        return (J.T @ J, jnp.sum(r**2),
-                _sums_by_output(np.asarray(r), obs, ts_p.size, problem.kinds))
-
-    H, rss, sums = normal_and_sums(best, u)
-    if reweight and len(outputs) > 1:
-        # Weight each output by its own residual scale, and refit from the optimum (the
-        # same compiled functions: `sigma` is an array of the problem).
-        rms = _rms_by_output(sums, obs, problem.sigma, problem.kinds)
-        problem = eqx.tree_at(lambda p: p.sigma, problem,
-                              tuple(jnp.asarray(rms[k] * setup.scale, dtype)
-                                    for k in outputs))
-        again = _run_start(u, horizons=(1.0,), warm_up=False)
-        best = {**again, "history": np.concatenate([best["history"], again["history"]]),
-                "stages": best["stages"] + tuple(best["iterations"] + s_
-                                                 for s_ in again["stages"]),
-                "iterations": best["iterations"] + again["iterations"]}
+        best = runs[int(np.argmin([run["loss"] for run in runs]))]
         loss, u = best["loss"], best["u"]
-        H, rss, sums = normal_and_sums(best, u)
+
+        def normal_and_sums(best, u):
+            """The normal matrix, residual sum of squares and sums by output at the optimum, and
+            the residuals of each output over the samples `(N, width)`."""
+            if "H" in best:  # multiple shooting's own normal matrix
+                sums = dict(zip(outputs, (float(x) for x in best["ss"])))
+                return best["H"], jnp.asarray(sum(sums.values())), sums, best["series"]
+            r, J = _jacobian(problem, u, ts_p, obs_p, weights)
+            r = np.asarray(r)
+            return (J.T @ J, jnp.sum(r**2), _sums_by_output(r, obs, ts_p.size, problem.kinds),
+                    _series_by_output(r, obs, ts_p.size, problem.kinds))
+
+        H, rss, sums, series = normal_and_sums(best, u)
+        if reweight and len(outputs) > 1:
+            # Weight each output by its own residual scale, and refit from the optimum (the
+            # same compiled functions: `sigma` is an array of the problem).
+            rms = _rms_by_output(sums, obs, problem.sigma, problem.kinds)
+            problem = eqx.tree_at(lambda p: p.sigma, problem,
+                                  tuple(jnp.asarray(rms[k] * setup.scale, dtype)
+                                        for k in outputs))
+            again = _run_start(u, horizons=(1.0,), warm_up=False)
+            best = {**again, "history": np.concatenate([best["history"], again["history"]]),
+                    "stages": best["stages"] + tuple(best["iterations"] + s_
+                                                     for s_ in again["stages"]),
+                    "iterations": best["iterations"] + again["iterations"]}
+            loss, u = best["loss"], best["u"]
+            H, rss, sums, series = normal_and_sums(best, u)
+        rms_by_output = _rms_by_output(sums, obs, problem.sigma, problem.kinds)
+        whiteness = _whiteness(series)
+        floors = {k: _MATERIAL * float(problem.rtol) * _data_scale(obs[k], kind)
+                  for k, kind in zip(outputs, problem.kinds)}
+        systematic = _systematic(whiteness, series, obs, problem.sigma, problem.kinds, floors)
+        loss0 = 0.5 * sum(sums[k] * float(np.max(np.asarray(sg)) / np.max(
+            np.asarray(sg0))) ** 2 for k, sg, sg0 in zip(outputs, problem.sigma,
+                                                          setup.problem.sigma))
+        return dict(best=best, runs=runs, problem=problem, loss=loss, u=u, H=H, rss=rss,
+                    sums=sums, rms_by_output=rms_by_output, whiteness=whiteness,
+                    systematic=systematic, loss0=loss0,
+                    segments=1 if shooting is None else shooting.segments)
+
+    fitted = _solve()
+    if fitted["systematic"] and automatic:
+        # Residuals far from white: perhaps a local minimum of this segmentation. Fit again
+        # with twice as many segments (or multiple shooting where single shooting was
+        # used), and keep the better fit: white residuals first, then the lower loss.
+        count = 2 * shooting.segments if shooting is not None else max(
+            3, 2 * int(np.ceil(clock[-1] / _TURNS)))
+        other = _multiple_shooting(setup.problem, setup, count, clock)
+        if other is not None:
+            first, shooting, problem = fitted, other, setup.problem
+            n_pre, pre_ts, pre_obs, pre_w = _prefix(shooting)
+            second = _solve()
+            better = ((first["systematic"] and not second["systematic"])
+                      or (bool(first["systematic"]) == bool(second["systematic"])
+                          and second["loss0"] < first["loss0"]))
+            fitted = second if better else first
+    best, runs, problem = fitted["best"], fitted["runs"], fitted["problem"]
+    loss, u, H, rss, sums = (fitted[k] for k in ("loss", "u", "H", "rss", "sums"))
+    rms_by_output, whiteness, systematic = (fitted[k] for k in ("rms_by_output", "whiteness",
+                                                                "systematic"))
     cov, values, std, s2, sv, vt = _uncertainty(problem, u, free, H, rss, n_obs)
 
     draws, acceptance, leapfrogs = None, None, None
@@ -1067,17 +1230,21 @@ def fit(
         involved = [c for c, x in zip(components, v) if abs(x) > 0.1]
         lines.append(f"only a combination of {', '.join(involved)} is determined by the data "
                      f"(condition number {sv[0] / sv[n_free - 1]:.1e})")
+    if systematic:
+        lines.append(_systematic_note(systematic, whiteness, n_samples=ts.size))
     scene_fit, y0_fit = _scene_and_state(problem, u)
     c2 = setup.scale**2  # the optimiser's losses back in units of data/sigma
     return FitResult(
         values=values, std=std, identifiable=identifiable, notes=tuple(lines),
         scene=scene_fit, y0=y0_fit, u=u, components=components, covariance=cov,
         loss=float(loss) * c2, residual_rms=float(np.sqrt(2 * loss * c2 / n_obs)),
-        residual_rms_by_output=_rms_by_output(sums, obs, problem.sigma, problem.kinds),
-        noise_variance=float(s2) * c2, converged=best["converged"],
+        residual_rms_by_output=rms_by_output,
+        noise_variance=float(s2) * c2, converged=best["converged"] and not systematic,
+        optimiser_converged=best["converged"], residual_autocorrelation=whiteness,
+        systematic=tuple(systematic),
         iterations=best["iterations"], history=best["history"] * c2, stages=best["stages"],
         restart_losses=np.array([run["loss"] for run in runs]) * c2,
-        segments=1 if shooting is None else shooting.segments,
+        segments=fitted["segments"],
         posterior=draws, posterior_acceptance=acceptance, posterior_leapfrogs=leapfrogs,
     )
 

@@ -46,6 +46,7 @@ _CONTINUITY = 10.0  # weight of a continuity defect, relative to its segment's d
 _STAGES = (1e-2, 1.0)  # continuation: factors of the continuity weights
 _MEMORY = 2**28  # bytes of Jacobian blocks and saved tangents per chunk of segments
 _SEGMENT_STEPS = 20_000
+_CPU_BATCH = 8  # segments per batch of a linearisation on a CPU (see `chunk`)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -161,7 +162,7 @@ def linearise(problem, lay, p, s, smaps, seg_ts, seg_data, seg_w, has_next, wc, 
     """Per-segment blocks at `(p, s)`: data normal matrix `N` and gradient `g` over `(p,
     s_k)`, sums of squares of each output `ss`, the weighted continuity defect `d` with its
     Jacobians `P` (on `p`), `G` (on `s_k`) and `E` (on `s_{k+1}`). Without `jacobian`, only
-    `ss` and `d`."""
+    `ss`, `d` and the weighted data residuals `r`."""
     n_p = p.shape[0]
     dyn, static = eqx.partition(smaps, eqx.is_array)
     shift = lambda x: jnp.concatenate([x[1:], x[-1:]])  # noqa: E731
@@ -200,7 +201,7 @@ def linearise(problem, lay, p, s, smaps, seg_ts, seg_data, seg_w, has_next, wc, 
         offsets = np.cumsum([0] + widths)
         ss = jnp.stack([jnp.sum(rd[a:b] ** 2) for a, b in zip(offsets[:-1], offsets[1:])])
         if J is None:
-            return {"ss": ss, "d": d}
+            return {"ss": ss, "d": d, "r": rd}
         Jd, Jc = J[:m], J[m:]
         E = jax.jacfwd(lambda sn: lay.defect(end, lay.state(maps_n, sn, problem.dtype))
                        .astype(p.dtype) * wc * hn)(s_n)
@@ -360,8 +361,13 @@ def memory_per_segment(points: int, unknowns: int, state_size: int, residual_wid
 
 
 def chunk(n_segments: int, per_segment: int) -> int:
-    """Segments per batch of a linearisation, so that a batch holds about `_MEMORY` bytes."""
-    return int(max(1, min(n_segments, 1024, _MEMORY // max(per_segment, 1))))
+    """Segments per batch of a linearisation, so that a batch holds about `_MEMORY` bytes,
+    and at most `_CPU_BATCH` on a CPU: a batch integrates its segments in lockstep, each
+    waiting for the slowest, which costs more there than the batching saves (issue 20's
+    1e4-sample wheel record, 31 segments, loaded 2-core CPU: 1.5 s per linearisation in one
+    batch, 0.6 s in batches of 8, 0.8 s one by one)."""
+    cap = _CPU_BATCH if jax.default_backend() == "cpu" else 1024
+    return int(max(1, min(n_segments, cap, _MEMORY // max(per_segment, 1))))
 
 
 @stored_filter_jit
@@ -425,7 +431,7 @@ class Shooting:
 
         scene, y0 = _scene_and_state(problem, u)
         starts = self.seg_ts[:, 0]
-        steps = max(problem.max_steps, 400 * self.segments)
+        steps = max(problem.max_steps, 2000 * self.segments)
         ys, ok = _simulate_to(problem, scene, y0, starts, max_steps=steps)
         if not bool(ok):
             ys = jax.tree.map(lambda v: jnp.broadcast_to(v, (self.segments,) + v.shape), y0)
@@ -438,6 +444,21 @@ class Shooting:
                     d = d - values[_BIAS + n]
                 ys[n] = ys[n].at[1:].set(d[1:].astype(ys[n].dtype))
         return ys
+
+    def series(self, problem, r) -> dict[str, np.ndarray]:
+        """The data residuals `r` `(S, m)` of the segments as each output's residuals over
+        the record's samples `(N, width)`, in time order."""
+        from ._fit import _width
+
+        r, valid = np.asarray(r), self.seg.weights > 0
+        out, start = {}, 0
+        for name, kind in zip(problem.outputs, problem.kinds):
+            d = self.seg.data[name]
+            width = _width(kind, d.shape[2:])
+            size = d.shape[1] * width
+            out[name] = r[:, start:start + size].reshape(d.shape[0], d.shape[1], width)[valid]
+            start += size
+        return out
 
     def _lin(self, problem, p, s, smaps, wc, jacobian=True):
         problem = dataclasses.replace(problem, max_steps=self.max_steps)
@@ -543,12 +564,14 @@ class Shooting:
                 break
         H, *_ = condense(B, p_free, self.s0_free)
         ss = np.asarray(jnp.sum(B["ss"], axis=0))
+        series = self.series(problem, self._lin(problem, p, s, smaps, wc, jacobian=False)["r"])
         data_loss = 0.5 * float(ss.sum())
         u_fit = self.u_of(p, s, jnp.asarray(u))
         Hu = jnp.asarray(H)[self.z_of_u][:, self.z_of_u]
         return {"loss": data_loss if np.isfinite(data_loss) else np.inf, "u": u_fit,
                 "converged": bool(converged and closed), "iterations": iterations,
                 "history": np.asarray(history), "stages": (0,), "H": Hu, "ss": ss,
+                "series": series,
                 "defect": float(jnp.max(jnp.abs(B["d"])))}
 
 
