@@ -185,7 +185,7 @@ def simulate(
     # (so the program holds no host callback and JAX's persistent cache can keep it). Under a
     # trace of the caller's (jit, grad, vmap) the host cannot see the values: the checks ride
     # in the program (equinox's runtime errors).
-    traced = not is_concrete(scene, y0, t0, t1, ts)
+    traced = not is_concrete(scene, y0, t0, t1, ts) or _staged()
     adjoint = dfx.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
     traj = _simulate(
         scene, y0, t0, t1, ts,
@@ -205,6 +205,12 @@ def simulate(
     if not traced:
         raise_on_failure(traj)
     return traj
+
+
+def _staged() -> bool:
+    """Whether this call is being staged into a program of the caller's (`jax.jit` of a
+    function that closes over concrete inputs): new values are then tracers."""
+    return isinstance(jnp.zeros((), bool), jax.core.Tracer)
 
 
 _FIELDS = ("ts", "ys", "t_final", "y_final", "event", "result", "outcome", "stats",
@@ -270,7 +276,10 @@ def _fast_simulate(scene, y0, t1, t0, ts, rtol, atol, max_steps, events, dense):
     if ts is not None:
         ts = np.asarray(ts, dtype)
         _check_ts(ts, t0f, t1f)
-    rtol, atol = _host_tolerances(rtol, atol, dtype)
+    try:
+        rtol, atol = _host_tolerances(rtol, atol, dtype)
+    except jax.errors.ConcretizationTypeError:  # staged into the caller's `jit`: see below
+        return None
     # The times and tolerances in one array: one transfer instead of four.
     times = np.array([t0f, t1f, rtol, atol], dtype)
     key = (layout, None if ts is None else ts.shape, max_steps, bool(events), bool(dense))
@@ -282,6 +291,8 @@ def _fast_simulate(scene, y0, t1, t0, ts, rtol, atol, max_steps, events, dense):
                                      lambda treedef: _build(treedef, *options))
         call = known[key] = program.resolve(leaves, y0, times, ts)
     out = call(leaves, y0, times, ts)
+    if isinstance(out[_OUTCOME], jax.core.Tracer):  # concrete inputs under the caller's `jit`
+        return None  # (the host cannot see the outcome: the checked program, below)
     # Built as equinox unflattens a module (its fields were checked inside the program), not
     # through `__init__`: the scene is the caller's own, not a copy from the device.
     traj = object.__new__(Trajectory)

@@ -108,6 +108,22 @@ def test_invalid_input_inside_jit_raises_by_name():
         run(jnp.array([1.0, 2.0, 4.0]))
 
 
+@pytest.mark.parametrize("case", [free, rod, budget])
+def test_concrete_inputs_closed_over_by_the_callers_jit(case):
+    """`jax.jit` of a function that closes over a concrete scene and state: the call is staged
+    into the caller's program (the host cannot read its outcome), with the same numbers as a
+    call outside it, and a failure raised from the program with its message."""
+    scene, y0, t1, kw = case()
+    staged = jax.jit(lambda: jd.simulate(scene, y0, t1, **kw).y_final)
+    if kw.get("max_steps"):
+        with pytest.raises(RuntimeError, match="max_steps"):
+            jax.block_until_ready(staged())
+        return
+    direct = jd.simulate(scene, y0, t1).y_final
+    for k, v in staged().items():
+        assert jnp.array_equal(v, direct[k]), k
+
+
 def test_hybrid_outcomes():
     scene = jd.Scene(jd.RoughFloorRod(mu_s=0.3, mu_k=0.2))
     traj = jd.simulate(scene, scene.state(theta=0.2), 5.0)
