@@ -303,7 +303,7 @@ def scaling_row(seed: int, samples: int, scene, scipy_max: int = 1000) -> dict:
 
 
 def posterior_coverage(seeds: int, eps: float = 1e-3, samples: int = 64, t1: float = 8.0,
-                       noise: float = 1e-3) -> dict:
+                       noise: float = 1e-3, chains: int = 4) -> dict:
     """Coverage of NUTS's central 90 % intervals and of Gauss--Newton's over `seeds` noise
     draws on a nearly axisymmetric body (see the module's docstring)."""
     moments = np.array([1.0, 1.0 + eps, 2.0])
@@ -323,16 +323,19 @@ def posterior_coverage(seeds: int, eps: float = 1e-3, samples: int = 64, t1: flo
         t0 = time.perf_counter()
         res = jd.fit(scene, ts, {"omega": data}, parameters={"inertia": jd.ValidInertia()},
                      initial=["omega"], restarts=1, horizons=(1.0,), posterior=200,
-                     warmup=150, key=seed)
+                     warmup=150, chains=chains, key=seed)
         m = np.asarray(res.values["inertia.principal_moments"])[:2]
         sd = np.asarray(res.std["inertia.principal_moments"])[:2]
         lo, hi = np.quantile(res.posterior["inertia.principal_moments"][:, :2], [0.05, 0.95],
                              axis=0)
         gn.extend(np.abs(m - truth) <= z * sd)
         post.extend((lo <= truth) & (truth <= hi))
+        diag = res.posterior_diagnostics
         rows.append({"seed": seed, "s": time.perf_counter() - t0,
-                     "acceptance": res.posterior_acceptance,
-                     "leapfrogs": res.posterior_leapfrogs,
+                     "acceptance": diag["acceptance"], "leapfrogs": diag["leapfrogs"],
+                     "warmup_leapfrogs": diag["warmup_leapfrogs"],
+                     "divergences": diag["divergences"], "bfmi": diag["bfmi"],
+                     "max_rhat": diag["max_rhat"], "min_ess": diag["min_ess"],
                      "gn_covers": [bool(x) for x in gn[-2:]],
                      "posterior_covers": [bool(x) for x in post[-2:]]})
         print(json.dumps(rows[-1]), file=sys.stderr, flush=True)  # progress
@@ -344,7 +347,14 @@ def posterior_coverage(seeds: int, eps: float = 1e-3, samples: int = 64, t1: flo
             "gauss_newton_coverage": float(np.mean(gn)),
             "posterior_consistent": bool(abs(np.mean(post) - 0.9) <= bound),
             "gauss_newton_consistent": bool(abs(np.mean(gn) - 0.9) <= bound),
-            "stuck_chains": sum(r["acceptance"] < 0.3 for r in rows), "rows": rows}
+            "chains": chains, "stuck_chains": sum(a < 0.3 for r in rows for a in r["acceptance"]),
+            "fits_rhat_over_1.05": sum(r["max_rhat"] > 1.05 for r in rows),
+            "max_rhat": max(r["max_rhat"] for r in rows),
+            "min_ess": min(r["min_ess"] for r in rows),
+            "divergences": sum(sum(r["divergences"]) for r in rows),
+            # The first fit compiles: the median of the others is the time of a fit.
+            "fit_s_median": float(np.median([r["s"] for r in rows[1:]] or [rows[0]["s"]])),
+            "first_fit_s": rows[0]["s"], "rows": rows}
 
 
 WHEELS_SCENE = """\
