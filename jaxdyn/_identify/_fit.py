@@ -872,8 +872,9 @@ def fit(
     if method not in ("lm", "lbfgs"):
         raise ParameterError(f"method={method!r}: allowed are 'lm', 'lbfgs'")
     for field, value, low in (("restarts", restarts, 1), ("agree", agree, 1),
-                              ("posterior", posterior, 0), ("warmup", warmup, 1), ("chains", chains, 1),
-                              ("max_iter", max_iter, 1), ("adam_steps", adam_steps, 0)):
+                              ("posterior", posterior, 0), ("warmup", warmup, 1),
+                              ("chains", chains, 1), ("max_iter", max_iter, 1),
+                              ("adam_steps", adam_steps, 0)):
         if not isinstance(value, int) or value < low:
             kind = "a positive" if low else "a non-negative"
             raise ParameterError(f"{field}={value!r}: must be {kind} integer")
