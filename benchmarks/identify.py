@@ -41,8 +41,12 @@ noise 1e-3, data by SciPy), fitted with `posterior=200, warmup=150` from the tru
 start) for each seed: how often the truth lies inside the central 90 % credible interval of
 each of the two close moments, against the Gauss--Newton 90 % intervals (+-1.645 sigma), with
 a binomial bound (the coverage of `2 x SEEDS` intervals is consistent with 90 % when it lies
-within 3 binomial standard deviations). Also each seed's NUTS acceptance and leapfrog steps
-per draw: a chain with an acceptance under 0.3 is counted as stuck.
+within 3 binomial standard deviations). Also each seed's diagnostics of its 4 chains
+(acceptance, leapfrog steps per draw in warm-up and sampling, divergences, energy BFMI, the
+largest split R-hat and smallest effective sample size over the sampled components): a chain
+with an acceptance under 0.3 is counted as stuck, a fit with an R-hat over 1.05 as not
+converged (`fit` warns); `fit_s_median` is the time of a fit with its posterior after the
+first (which compiles).
 
 Spacecraft telemetry (`--wheels SAMPLES`, e.g. 100000): a spacecraft with products of
 inertia and three reaction wheels doing slews (commanded torques held 10 s each, in pairs
