@@ -1053,8 +1053,8 @@ def fit(
         from ._posterior import sample
 
         draws, report = sample(problem, u.astype(u0.dtype), free_np, u0, ts_p, obs_p, weights,
-                               s2, jax.random.fold_in(key, 1), _summaries, draws=posterior,
-                               warmup=warmup, chains=chains)
+                               s2, cov, jax.random.fold_in(key, 1), _summaries,
+                               draws=posterior, warmup=warmup, chains=chains)
         acceptance = float(np.mean(report["acceptance"]))
         leapfrogs = float(np.mean(report["leapfrogs"]))
     identifiable = {c: bool(f) for c, f in zip(components, free_np)}

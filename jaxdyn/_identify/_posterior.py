@@ -39,8 +39,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._parameterisation import PRIOR_SD
-
 RHAT_MAX = 1.05  # above this split R-hat, the chains disagree: a warning
 DISPERSION = 2.0  # chains start at this many Gauss--Newton standard deviations
 
@@ -103,58 +101,61 @@ def _log_density(sampled, w, free_index, w_start, free, ts, data, weights, s2):
 
 
 @eqx.filter_jit
-def _chains(sampled, w, free_index, w_start, free, ts, data, weights, s2, key, *, draws,
-            warmup, chains):
-    """`draws` NUTS draws of each of `chains` chains of the free components of `w` (the others
-    fixed), with each draw's acceptance rate, divergence, leapfrog steps and energy."""
-    blackjax = _import_blackjax()
-    log_density, residuals, full = _log_density(sampled, w, free_index, w_start, free, ts,
-                                                data, weights, s2)
-    v0 = w[free_index]
+def _coordinate_jacobian(problem, sampled, u):
+    return jax.jacfwd(lambda u: _to_sampling(problem, sampled, u))(u)
+
+
+@eqx.filter_jit
+def _mass_and_starts(G, cov, v0, key, chains):
+    """The inverse mass matrix, and the chains' starting points (dispersed around `v0`)."""
     # The Gauss--Newton covariance in the sampling coordinates is the inverse mass matrix:
     # where the approximation holds it has the posterior's scales and correlations (a few
     # leapfrog steps per draw); where it does not the sampler stays exact, only slower.
     # (A dense mass matrix estimated from a few hundred warm-up draws, as Stan's windows do,
     # was measured to need about 290 leapfrog steps per draw on the well-determined body of
-    # tests/test_posterior.py, against a handful here.)
-    J = jax.jacfwd(residuals)(v0)
-    eye = jnp.eye(v0.size, dtype=v0.dtype)
-    inverse_mass = jnp.linalg.inv(J.T @ J / s2 + eye / PRIOR_SD**2)
+    # tests/test_posterior.py, against a handful here.) It is the fit's, carried over by the
+    # Jacobian of the change of coordinates (exact: the residuals' Jacobians differ by it).
+    inverse_mass = G @ cov @ G.T
     inverse_mass = 0.5 * (inverse_mass + inverse_mass.T)
-    k_start, k_warm, k_draw = jax.random.split(key, 3)
-    z = jax.random.normal(k_start, (chains, v0.size), v0.dtype)
-    starts = v0 + DISPERSION * z @ jnp.linalg.cholesky(inverse_mass).T
+    inverse_mass = inverse_mass + 1e-12 * jnp.trace(inverse_mass) * jnp.eye(v0.size,
+                                                                              dtype=v0.dtype)
+    z = jax.random.normal(key, (chains, v0.size), v0.dtype)
+    return inverse_mass, v0 + DISPERSION * z @ jnp.linalg.cholesky(inverse_mass).T
+
+
+@eqx.filter_jit
+def _chain(sampled, w, free_index, w_start, free, ts, data, weights, s2, inverse_mass, start,
+           key, *, draws, warmup):
+    """`draws` NUTS draws of one chain of the free components of `w` (the others fixed) from
+    `start`, with each draw's acceptance rate, divergence, leapfrog steps and energy, and
+    the leapfrog steps of each warm-up step."""
+    blackjax = _import_blackjax()
+    log_density, _, full = _log_density(sampled, w, free_index, w_start, free, ts, data,
+                                        weights, s2)
     da_init, da_update, da_final = blackjax.adaptation.step_size.dual_averaging_adaptation(0.8)
 
     def nuts(step_size):
         return blackjax.nuts(log_density, step_size=step_size, inverse_mass_matrix=inverse_mass)
 
-    def chain(start, k_warm, k_draw):
-        def warm_step(carry, k):
-            state, da = carry
-            state, info = nuts(jnp.exp(da.log_step_size)).step(k, state)
-            return (state, da_update(da, info.acceptance_rate)), info.num_integration_steps
+    def warm_step(carry, k):
+        state, da = carry
+        state, info = nuts(jnp.exp(da.log_step_size)).step(k, state)
+        return (state, da_update(da, info.acceptance_rate)), info.num_integration_steps
 
-        da = da_init(jnp.asarray(1.0, v0.dtype))
-        with jax.numpy_dtype_promotion("standard"):
-            (state, da), warm_steps = jax.lax.scan(warm_step, (nuts(1.0).init(start), da),
-                                                   jax.random.split(k_warm, warmup))
-        kernel = nuts(da_final(da))
+    k_warm, k_draw = jax.random.split(key)
+    da = da_init(jnp.asarray(1.0, start.dtype))
+    with jax.numpy_dtype_promotion("standard"):
+        (state, da), warm_steps = jax.lax.scan(warm_step, (nuts(1.0).init(start), da),
+                                               jax.random.split(k_warm, warmup))
+    kernel = nuts(da_final(da))
 
-        def step(state, k):
-            state, info = kernel.step(k, state)
-            return state, (state.position, info.acceptance_rate, info.is_divergent,
-                           info.num_integration_steps, info.energy)
+    def step(state, k):
+        state, info = kernel.step(k, state)
+        return state, (state.position, info.acceptance_rate, info.is_divergent,
+                       info.num_integration_steps, info.energy)
 
-        _, out = jax.lax.scan(step, state, jax.random.split(k_draw, draws))
-        return (*out, warm_steps)
-
-    # One chain after the other: vmapped, the chains' nested loops (NUTS's trajectories
-    # around the integrator's steps) were measured to run tens of times slower on a CPU.
-    vs, acceptance, divergent, steps, energy, warm_steps = jax.lax.map(
-        lambda a: chain(*a),
-        (starts, jax.random.split(k_warm, chains), jax.random.split(k_draw, chains)))
-    return jax.vmap(jax.vmap(full))(vs), acceptance, divergent, steps, energy, warm_steps
+    _, (vs, *out) = jax.lax.scan(step, state, jax.random.split(k_draw, draws))
+    return (jax.vmap(full)(vs), *out, warm_steps)
 
 
 def _split_halves(x):
@@ -187,13 +188,13 @@ def diagnostics(x, energy, acceptance, divergent, steps, warm_steps, names):
     }
 
 
-def sample(problem, u, free, u_start, ts, data, weights, s2, key, summaries, *, draws,
+def sample(problem, u, free, u_start, ts, data, weights, s2, cov, key, summaries, *, draws,
            warmup, chains):
     """Posterior draws of the fitted quantities (`summaries(problem, u, free)` of each draw,
     `draws` in all) and the chains' diagnostics (see `FitResult.posterior_diagnostics`).
 
     `free` is the NumPy mask of the fitted components of `u`, `u_start` the fit's starting
-    point (the prior's centre)."""
+    point (the prior's centre), `cov` the Gauss--Newton covariance of `u`."""
     free = np.asarray(free)
     maps = tuple(m.sampling(f) for m, f in zip(problem.maps, _split(problem, free)))
     if any(s.size() != m.size() for s, m in zip(maps, problem.maps)):
@@ -202,10 +203,18 @@ def sample(problem, u, free, u_start, ts, data, weights, s2, key, summaries, *, 
     w = _to_sampling(problem, sampled, u)
     index = np.nonzero(free)[0]
     per_chain = -(-draws // chains)
-    ws, acceptance, divergent, steps, energy, warm_steps = _chains(
-        sampled, w, jnp.asarray(index), _to_sampling(problem, sampled, u_start),
-        jnp.asarray(free), ts, data, weights, s2, key, draws=per_chain, warmup=warmup,
-        chains=chains)
+    G = _coordinate_jacobian(problem, sampled, u)[index][:, index]
+    k_start, k_chains = jax.random.split(key)
+    inverse_mass, starts = _mass_and_starts(G, cov[index][:, index], w[index], k_start, chains)
+    # One chain after the other, by one compiled program: vmapped, the chains' nested loops
+    # (NUTS's trajectories around the integrator's steps) were measured to run tens of times
+    # slower on a CPU.
+    runs = [_chain(sampled, w, jnp.asarray(index), _to_sampling(problem, sampled, u_start),
+                   jnp.asarray(free), ts, data, weights, s2, inverse_mass, start, k,
+                   draws=per_chain, warmup=warmup)
+            for start, k in zip(starts, jax.random.split(k_chains, chains))]
+    ws, acceptance, divergent, steps, energy, warm_steps = (
+        jnp.stack(x) for x in zip(*runs))
     names = [c for name, m in zip(sampled.names, sampled.maps) for c in m.components(name)]
     report = diagnostics(np.asarray(ws)[:, :, index], energy, acceptance, divergent, steps,
                          warm_steps, [names[i] for i in index])
