@@ -143,6 +143,9 @@ def _chain(sampled, w, free_index, w_start, free, ts, data, weights, s2, inverse
         return (state, da_update(da, info.acceptance_rate)), info.num_integration_steps
 
     k_warm, k_draw = jax.random.split(key)
+    # A dispersed start outside the support (a body that is not physical, where the optimum
+    # lies near that boundary) would never move: such a chain starts at the optimum instead.
+    start = jnp.where(jnp.isfinite(log_density(start)), start, w[free_index])
     da = da_init(jnp.asarray(1.0, start.dtype))
     with jax.numpy_dtype_promotion("standard"):
         (state, da), warm_steps = jax.lax.scan(warm_step, (nuts(1.0).init(start), da),
@@ -223,7 +226,8 @@ def sample(problem, u, free, u_start, ts, data, weights, s2, cov, key, summaries
     bad = {k: round(v, 3) for k, v in report["rhat"].items() if not v <= RHAT_MAX}
     if bad:
         warnings.warn(
-            f"posterior: the {chains} chains disagree (split R-hat above {RHAT_MAX}: {bad}); "
+            f"posterior: the halves of the {chains} chain(s) disagree (split R-hat above "
+            f"{RHAT_MAX}: {bad}); "
             "the draws are not yet a sample of the posterior. Sample longer (larger warmup= "
             "and posterior=), or compare with the Gauss-Newton intervals (FitResult.std).",
             RuntimeWarning, stacklevel=3)
