@@ -100,7 +100,7 @@ class StoredProgram:
 
     def __init__(self, name: str, structure, options, fn):
         self.fn = fn
-        self.jitted = jax.jit(fn)
+        self.jitted = _on_one_device(fn)
         self.text = f"{name}|{structure}|{options!r}"
         self.trusted = _trusted(self.text)
         self.calls: dict = {}
@@ -140,7 +140,7 @@ class StoredProgram:
             outs = exported.call(*args)
             return [_weakly_typed(x) if w else x for x, w in zip(outs, weak)]
 
-        program = jax.jit(_named(call, self.fn))
+        program = _on_one_device(_named(call, self.fn))
         return lambda *a: jax.tree_util.tree_unflatten(out_tree, program(*a))
 
     def _export(self, stem: Path, args):
@@ -173,6 +173,21 @@ class StoredProgram:
             os.replace(tmp, stem.with_suffix(suffix))  # atomic: concurrent writers agree
         # Called as a later process will call it, from its serialised form.
         return jax.export.deserialize(bytearray(blob)), *found[0]
+
+
+def _on_one_device(fn):
+    """`jax.jit(fn)` with every input placed on JAX's default device.
+
+    Plain `jax.jit` lowers and compiles a program again, under another key of the persistent
+    cache, when an input that was a host array (not committed to a device) in one call is a
+    device array (committed) in the next: a fit that passes one stage's estimate to the next,
+    or `jd.simulate` from `traj.y_final`, compiled each of its programs twice. Naming the
+    placement makes every call the same program. (Inputs committed to another device are
+    moved to the default one: jaxdyn's programs run on one device.)"""
+    device = jax.config.jax_default_device
+    if not isinstance(device, jax.Device):
+        device = jax.devices(device)[0] if isinstance(device, str) else jax.devices()[0]
+    return jax.jit(fn, in_shardings=jax.sharding.SingleDeviceSharding(device))
 
 
 def _weakly_typed(x):

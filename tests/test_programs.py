@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 import jaxdyn as jd
-from jaxdyn import _programs
+from jaxdyn import _programs, _simulate, _solution
 from jaxdyn._simulate import simulate_unchecked
 
 SCENE = jd.Scene(jd.FallingRod(length=1.3, mass=2.0, g=9.81))
@@ -87,3 +87,28 @@ def test_weak_types_survive_the_disk(stored):
     assert len(list(stored.glob("*.bin"))) == 1
     with jax.numpy_dtype_promotion("strict"):
         assert float(out["sign"] * np.float64(2.5)) == 2.5
+
+
+@pytest.mark.parametrize("on_disk", [True, False])
+def test_host_and_device_inputs_share_one_compiled_program(on_disk, tmp_path, monkeypatch,
+                                                           caplog):
+    """A call from host values and the next from the previous call's device arrays (a fit's
+    stages, `jd.simulate` from `traj.y_final`) run one compiled program: plain `jax.jit`
+    compiled it twice (inputs committed to a device are another lowering)."""
+    monkeypatch.setattr(_programs, "_directory", lambda: tmp_path if on_disk else None)
+    monkeypatch.setattr(_simulate, "_STRUCTURES", {})  # (this process's programs: none)
+    monkeypatch.setattr(_simulate, "_LAST", [None, None, None])
+    monkeypatch.setattr(_solution, "_PROGRAMS", {})
+    ts = np.linspace(0.0, 0.1, 37)  # (a signature no other test compiles)
+    with jax.log_compiles(), caplog.at_level("WARNING"):
+        first = jd.simulate(SCENE, SCENE.state(theta=0.2), 0.1, ts=ts)
+        assert first.y_final["theta"].committed  # (the next call's inputs: device arrays)
+        second = jd.simulate(SCENE, first.y_final, 0.2, t0=0.1, ts=ts + 0.1)
+    compiled = [r.getMessage() for r in caplog.records
+                if r.getMessage().startswith("Finished XLA compilation of jit(simulate")]
+    assert len(compiled) == 1, compiled
+    # The second run continues the first: the same as one run over both spans.
+    whole = jd.simulate(SCENE, SCENE.state(theta=0.2), 0.2)
+    assert str(second.outcome) == str(whole.outcome)
+    np.testing.assert_allclose(float(second.y_final["theta"]), float(whole.y_final["theta"]),
+                               rtol=1e-6)
