@@ -45,7 +45,6 @@ SLOW_FIRST = (
     "test_readme.py::test_readme_examples_run",
     "test_rough_rod.py::test_ensemble_engine_switches_per_trajectory",
     "test_hard_cases.py::test_gradients",
-    "test_shooting.py::test_long_noise_free_record_by_multiple_shooting",
     "test_identify.py::test_wheel_telemetry_fixes_the_inertia_scale",
     "test_fit_wheels_cli.py::test_fit_reads_wheel_columns_and_recovers_the_absolute_inertia",
     "test_long_records.py::test_switching_scene_with_many_samples_and_its_dense_table",

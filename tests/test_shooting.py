@@ -1,19 +1,16 @@
-"""Multiple shooting (long records): the structured solver against a dense solve, the
-estimate against single shooting's on the same data, and a long noise-free record recovered
-from the default start. Reference data from SciPy's DOP853 (see test_identify.py)."""
+"""Multiple shooting (long records): the structured solver against a dense solve, and the
+estimate against single shooting's on the same data. (A long noise-free record recovered from
+the default start by multiple shooting: test_identify.py's
+`test_long_noise_free_record_converges_from_the_default_start`.) Reference data from SciPy's
+DOP853 (see test_identify.py)."""
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 from test_identify import (
-    FIT_BODY,
-    GUESS,
     _attitude_record,
     _star_tracker,
-    euler_rates,
-    random_body,
-    sorted_axes,
 )
 
 import jaxdyn as jd
@@ -102,18 +99,3 @@ def test_multiple_shooting_gives_the_single_shooting_estimate_and_intervals():
     for name, rho in single.residual_autocorrelation.items():
         assert np.allclose(multiple.residual_autocorrelation[name], rho, atol=1e-6)
     assert single.systematic == multiple.systematic == ()
-
-
-def test_long_noise_free_record_by_multiple_shooting():
-    """About 80 turns in 10^4 samples, noise-free: the record's length chooses multiple
-    shooting, which recovers the moments from the default start to 1e-8 (relative; the
-    integration's default tolerance sets the floor)."""
-    rng = np.random.default_rng(5150)
-    tensor, w0 = random_body(rng)
-    ts = np.linspace(0.0, 500.0, 10_000)
-    data = euler_rates(tensor, w0, ts)
-    res = jd.fit(jd.Scene(jd.RigidBody(GUESS)), ts, {"omega": data}, **FIT_BODY)
-    truth = sorted_axes(tensor)[0]
-    moments = np.asarray(res.values["inertia.principal_moments"])
-    assert res.converged and res.segments > 10
-    assert np.max(np.abs(moments / (truth / truth[-1]) - 1)) < 1e-8, moments
