@@ -184,9 +184,9 @@ def _on_one_device(fn):
     or `jd.simulate` from `traj.y_final`, compiled each of its programs twice. Naming the
     placement makes every call the same program. (Inputs committed to another device are
     moved to the default one: jaxdyn's programs run on one device.)"""
-    device = jax.config.jax_default_device
+    device = jax.config.jax_default_device  # (where `jax.jit` puts host inputs)
     if not isinstance(device, jax.Device):
-        device = jax.devices(device)[0] if isinstance(device, str) else jax.devices()[0]
+        device = jax.local_devices(backend=device if isinstance(device, str) else None)[0]
     return jax.jit(fn, in_shardings=jax.sharding.SingleDeviceSharding(device))
 
 
