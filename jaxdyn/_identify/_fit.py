@@ -956,9 +956,10 @@ def fit(
     - `posterior`: a number of draws to sample from the posterior of the fitted quantities by
       NUTS (blackjax, `pip install 'jaxdyn[posterior]'`) after `warmup` adaptation steps,
       through the same residuals: a Gaussian likelihood with the fitted noise variance, a
-      prior uniform over the normalised inertia tensor of a [`jaxdyn.ValidInertia`][] and a
-      weakly informative Gaussian prior (standard deviation 10) on each other unconstrained
-      component around the starting point (see `FitResult.posterior`). For where the
+      prior uniform in the principal moments (over the physical bodies) and over the axes of
+      a [`jaxdyn.ValidInertia`][] and a weakly informative Gaussian prior (standard
+      deviation 10) on each other unconstrained component around the starting point (see
+      `FitResult.posterior`). For where the
       Gauss--Newton intervals cannot be trusted, as for the axes of a nearly axisymmetric
       body. Default 0: none.
     - `chains`: the number of NUTS chains (run side by side, started dispersed around the

@@ -261,6 +261,10 @@ class ValidInertia(AbstractParameterisation):
         return _ShapeInertia() if bool(np.all(free[1:])) else self
 
 
+# Below this gap between two eigenvalues of the unit-trace shape, the shape prior of
+# _ShapeInertia is flat: finite where two moments are equal.
+_GAP_FLOOR = 1e-8
+
 # An orthonormal basis (Frobenius) of the traceless symmetric 3x3 matrices.
 _R2, _R6 = 1 / np.sqrt(2), 1 / np.sqrt(6)
 _TRACELESS = np.array([
@@ -290,12 +294,23 @@ class _ShapeInertia(AbstractParameterisation):
     and at a flat plate (where its shape logits run off to infinity). The scale $e^s$ is
     that of [`jaxdyn.ValidInertia`][] (the same first component).
 
-    Not every `c` is a physical body: the prior is uniform over the physical shapes (those
-    with $\mathbf{N}$ positive semi-definite, the triangle inequality of the moments; a
-    compact set) and zero outside, and Gaussian of standard deviation `PRIOR_SD` on the
-    scale `s` where the scale is fitted. (A prior uniform in the moments-and-axes coordinates
-    would instead pile up at equal moments and at flat plates, where those coordinates run
-    off while the tensor hardly changes.)
+    Not every `c` is a physical body. The prior is zero outside the physical shapes (those
+    with $\mathbf{N}$ positive semi-definite, the triangle inequality of the moments) and,
+    inside, uniform in the body's principal moments (normalised, over the triangle of
+    physical bodies) and uniform over its orientations (Haar measure on the principal
+    axes), independently; Gaussian of standard deviation `PRIOR_SD` on the scale `s` where
+    the scale is fitted. In the linear coordinates that is the density
+    $\prod_{i<j} |\lambda_i - \lambda_j|^{-1}$ of the eigenvalues $\lambda$ of
+    $\mathbf{N}$: the volume element of the symmetric matrices in eigenvalues and axes is
+    $\prod_{i<j} |\lambda_i - \lambda_j| \, d\lambda \, dR$ (the Vandermonde factor),
+    so a prior uniform over the tensors would make nearly equal moments rare (the sorted
+    moments of its draws repel each other; on a body with two moments 0.1 % apart, 90 %
+    intervals of the larger one covered the truth in 63 % of 40 noise draws). The density
+    is integrable (the equal-moment bodies have codimension 2) and is capped at gaps below
+    `_GAP_FLOOR` (of the unit trace), so that it stays finite where two moments are
+    exactly equal. (A prior uniform in the moments-and-axes coordinates of
+    [`jaxdyn.ValidInertia`][] would pile up at flat plates, where its shape logits run off
+    while the tensor hardly changes.)
     """
 
     names: ClassVar[tuple[str, ...]] = ("scale", "shape1", "shape2", "shape3", "shape4",
@@ -334,9 +349,12 @@ class _ShapeInertia(AbstractParameterisation):
         }
 
     def log_prior(self, u, start, free):
-        physical = jnp.linalg.eigvalsh(self.shape_of(u[1:]))[0] >= 0
+        lam = jnp.linalg.eigvalsh(self.shape_of(u[1:]))  # ascending, summing to 1
+        gaps = jnp.stack([lam[1] - lam[0], lam[2] - lam[1], lam[2] - lam[0]])
+        # Uniform in the moments and axes: the inverse of the Vandermonde factor.
+        shape = -jnp.sum(jnp.log(jnp.maximum(gaps, _GAP_FLOOR)))
         scale = jnp.where(free[0], (u[0] - start[0]) / PRIOR_SD, 0.0)
-        return jnp.where(physical, -0.5 * scale**2, -jnp.inf)
+        return jnp.where(lam[0] >= 0, shape - 0.5 * scale**2, -jnp.inf)
 
 
 class UnitQuaternion(AbstractParameterisation):
