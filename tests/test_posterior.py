@@ -131,7 +131,7 @@ def test_posterior_near_equal_moments_and_a_flat_plate_agrees_with_importance_sa
     # flat-plate plateau). About 6 with a prior uniform over the tensor; about 20 with the
     # prior uniform in the moments, whose density (1 / gap) is peaked where the two close
     # moments are equal, inside this posterior: the steps are smaller there (22 on this
-    # record; 18 on average over 40 seeds of the benchmark, 71 the most for one chain).
+    # record; 18 on average over 40 seeds of the benchmark, 113 the most for one chain).
     assert diag["max_rhat"] < 1.05 and min(diag["acceptance"]) > 0.5, diag
     assert res.posterior_leapfrogs < 50, res.posterior_leapfrogs
 

@@ -959,9 +959,8 @@ def fit(
       prior uniform in the principal moments (over the physical bodies) and over the axes of
       a [`jaxdyn.ValidInertia`][] and a weakly informative Gaussian prior (standard
       deviation 10) on each other unconstrained component around the starting point (see
-      `FitResult.posterior`). For where the
-      Gauss--Newton intervals cannot be trusted, as for the axes of a nearly axisymmetric
-      body. Default 0: none.
+      `FitResult.posterior`). For where the Gauss--Newton intervals cannot be trusted, as
+      for the axes of a nearly axisymmetric body. Default 0: none.
     - `chains`: the number of NUTS chains (run side by side, started dispersed around the
       optimum; `posterior` draws in all, each chain after its own `warmup`). Their
       agreement is checked (split R-hat in `FitResult.posterior_diagnostics`; a warning when
