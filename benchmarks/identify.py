@@ -41,8 +41,12 @@ noise 1e-3, data by SciPy), fitted with `posterior=200, warmup=150` from the tru
 start) for each seed: how often the truth lies inside the central 90 % credible interval of
 each of the two close moments, against the Gauss--Newton 90 % intervals (+-1.645 sigma), with
 a binomial bound (the coverage of `2 x SEEDS` intervals is consistent with 90 % when it lies
-within 3 binomial standard deviations). Also each seed's NUTS acceptance and leapfrog steps
-per draw: a chain with an acceptance under 0.3 is counted as stuck.
+within 3 binomial standard deviations). Also each seed's diagnostics of its 4 chains
+(acceptance, leapfrog steps per draw in warm-up and sampling, divergences, energy BFMI, the
+largest split R-hat and smallest effective sample size over the sampled components): a chain
+with an acceptance under 0.3 is counted as stuck, a fit with an R-hat over 1.05 as not
+converged (`fit` warns); `fit_s_median` is the time of a fit with its posterior after the
+first (which compiles).
 
 Spacecraft telemetry (`--wheels SAMPLES`, e.g. 100000): a spacecraft with products of
 inertia and three reaction wheels doing slews (commanded torques held 10 s each, in pairs
@@ -305,7 +309,7 @@ def scaling_row(seed: int, samples: int, scene, scipy_max: int = 1000) -> dict:
 
 
 def posterior_coverage(seeds: int, eps: float = 1e-3, samples: int = 64, t1: float = 8.0,
-                       noise: float = 1e-3) -> dict:
+                       noise: float = 1e-3, chains: int = 4) -> dict:
     """Coverage of NUTS's central 90 % intervals and of Gauss--Newton's over `seeds` noise
     draws on a nearly axisymmetric body (see the module's docstring)."""
     moments = np.array([1.0, 1.0 + eps, 2.0])
@@ -325,16 +329,19 @@ def posterior_coverage(seeds: int, eps: float = 1e-3, samples: int = 64, t1: flo
         t0 = time.perf_counter()
         res = jd.fit(scene, ts, {"omega": data}, parameters={"inertia": jd.ValidInertia()},
                      initial=["omega"], restarts=1, horizons=(1.0,), posterior=200,
-                     warmup=150, key=seed)
+                     warmup=150, chains=chains, key=seed)
         m = np.asarray(res.values["inertia.principal_moments"])[:2]
         sd = np.asarray(res.std["inertia.principal_moments"])[:2]
         lo, hi = np.quantile(res.posterior["inertia.principal_moments"][:, :2], [0.05, 0.95],
                              axis=0)
         gn.extend(np.abs(m - truth) <= z * sd)
         post.extend((lo <= truth) & (truth <= hi))
+        diag = res.posterior_diagnostics
         rows.append({"seed": seed, "s": time.perf_counter() - t0,
-                     "acceptance": res.posterior_acceptance,
-                     "leapfrogs": res.posterior_leapfrogs,
+                     "acceptance": diag["acceptance"], "leapfrogs": diag["leapfrogs"],
+                     "warmup_leapfrogs": diag["warmup_leapfrogs"],
+                     "divergences": diag["divergences"], "bfmi": diag["bfmi"],
+                     "max_rhat": diag["max_rhat"], "min_ess": diag["min_ess"],
                      "gn_covers": [bool(x) for x in gn[-2:]],
                      "posterior_covers": [bool(x) for x in post[-2:]]})
         print(json.dumps(rows[-1]), file=sys.stderr, flush=True)  # progress
@@ -346,7 +353,14 @@ def posterior_coverage(seeds: int, eps: float = 1e-3, samples: int = 64, t1: flo
             "gauss_newton_coverage": float(np.mean(gn)),
             "posterior_consistent": bool(abs(np.mean(post) - 0.9) <= bound),
             "gauss_newton_consistent": bool(abs(np.mean(gn) - 0.9) <= bound),
-            "stuck_chains": sum(r["acceptance"] < 0.3 for r in rows), "rows": rows}
+            "chains": chains, "stuck_chains": sum(a < 0.3 for r in rows for a in r["acceptance"]),
+            "fits_rhat_over_1.05": sum(r["max_rhat"] > 1.05 for r in rows),
+            "max_rhat": max(r["max_rhat"] for r in rows),
+            "min_ess": min(r["min_ess"] for r in rows),
+            "divergences": sum(sum(r["divergences"]) for r in rows),
+            # The first fit compiles: the median of the others is the time of a fit.
+            "fit_s_median": float(np.median([r["s"] for r in rows[1:]] or [rows[0]["s"]])),
+            "first_fit_s": rows[0]["s"], "rows": rows}
 
 
 # The design estimate that the fit starts from (the diagonal 30 % high), shared with the tests.

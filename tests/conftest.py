@@ -1,5 +1,8 @@
+import gc
 import os
 import tempfile
+
+import pytest
 
 # Optional XLA flags for the whole run, set before JAX starts its backend (inherited by the
 # notebook kernels and the commands the tests start): JAXDYN_TEST_XLA_FLAGS=
@@ -67,3 +70,34 @@ def pytest_collection_modifyitems(config, items):
                     len(SLOW_FIRST))
 
     items.sort(key=rank)  # stable: the order within a rank (and of the rest) is kept
+
+
+# Every program XLA:CPU compiles keeps its machine code in memory mappings of its own (about
+# 200 for a simulation), and JAX's caches keep the programs, so a worker that compiles
+# thousands of them reaches the kernel's limit on mappings per process (vm.max_map_count,
+# 65530 by default). There the next compilation fails to map memory ("LLVM compilation
+# error: Cannot allocate memory"), and the C++ exception that reports it crashes the process
+# (a segmentation fault while unwinding, inside jaxlib): the tests of one worker of a
+# fresh-cache `pytest -n 2` run, replayed in one process, died so at 65216 mappings. Past half
+# the limit, the caches are dropped after the test (their programs are reloaded from the
+# persistent cache where needed); the same replay then peaked at 32975 and passed.
+def _mapping_limit():
+    try:
+        with open("/proc/sys/vm/max_map_count") as f:
+            return int(f.read())
+    except (OSError, ValueError):
+        return None  # not Linux: no such limit to watch
+
+
+_MAPPING_LIMIT = _mapping_limit()
+
+
+@pytest.fixture(autouse=True)
+def _bounded_memory_mappings():
+    yield
+    if _MAPPING_LIMIT:
+        with open("/proc/self/maps") as f:
+            mappings = sum(1 for _ in f)
+        if mappings > _MAPPING_LIMIT // 2:
+            jax.clear_caches()
+            gc.collect()

@@ -476,9 +476,16 @@ class FitResult:
       lacks an effect (a sensor bias, a torque), said in `notes`; such a fit does not
       report `converged`.
     - `posterior`: with `fit(posterior=n)`, `n` posterior draws of each quantity of `values`
-      (NUTS; shape `(n, *shape)`), else `None`; `posterior_acceptance`: NUTS's mean
-      acceptance rate; `posterior_leapfrogs`: its mean number of leapfrog steps per draw
-      (each costs one forward-mode gradient through the integrator).
+      (NUTS; shape `(n, *shape)`, the chains one after the other), else `None`;
+      `posterior_acceptance`: NUTS's mean acceptance rate; `posterior_leapfrogs`: its mean
+      number of leapfrog steps per draw (each costs one forward-mode gradient through the
+      integrator); `posterior_diagnostics`: by chain `"acceptance"`, `"divergences"`,
+      `"leapfrogs"` and `"bfmi"` (energy fraction of missing information; below about 0.3
+      a chain explores poorly), and by sampled component (the sampling coordinates, for
+      [`jaxdyn.ValidInertia`][] the linear coordinates of the shape) the split `"rhat"`
+      (the chains agree when it is below about 1.05: `fit` warns otherwise) and `"ess"`
+      (effective sample size), with `"max_rhat"`, `"min_ess"`, `"chains"`,
+      `"draws_per_chain"`.
     """
 
     values: dict[str, Array]
@@ -506,6 +513,7 @@ class FitResult:
     posterior: dict[str, np.ndarray] | None = None
     posterior_acceptance: float | None = None
     posterior_leapfrogs: float | None = None
+    posterior_diagnostics: dict[str, Any] | None = None
 
 
 def _sums_by_output(r, obs, padded, kinds):
@@ -881,6 +889,7 @@ def fit(
     segments: int | None = None,
     posterior: int = 0,
     warmup: int = 300,
+    chains: int = 4,
 ) -> FitResult:
     r"""Fit parameters and initial state of a scene to sampled outputs (least squares).
 
@@ -946,11 +955,16 @@ def fit(
 
     - `posterior`: a number of draws to sample from the posterior of the fitted quantities by
       NUTS (blackjax, `pip install 'jaxdyn[posterior]'`) after `warmup` adaptation steps,
-      through the same residuals: a Gaussian likelihood with the fitted noise variance and
-      a weakly informative Gaussian prior (standard deviation 10) on each unconstrained
-      component around the starting point (see `FitResult.posterior`). For where the
-      Gauss--Newton intervals cannot be trusted, as for the axes of a nearly axisymmetric
-      body. Default 0: none.
+      through the same residuals: a Gaussian likelihood with the fitted noise variance, a
+      prior uniform in the principal moments (over the physical bodies) and over the axes of
+      a [`jaxdyn.ValidInertia`][] and a weakly informative Gaussian prior (standard
+      deviation 10) on each other unconstrained component around the starting point (see
+      `FitResult.posterior`). For where the Gauss--Newton intervals cannot be trusted, as
+      for the axes of a nearly axisymmetric body. Default 0: none.
+    - `chains`: the number of NUTS chains (run side by side, started dispersed around the
+      optimum; `posterior` draws in all, each chain after its own `warmup`). Their
+      agreement is checked (split R-hat in `FitResult.posterior_diagnostics`; a warning when
+      they disagree). Default 4.
 
     Long records are fitted by multiple shooting: the state at the start of each segment is
     an unknown of its own, started from the data where they measure it (gyro rates less the
@@ -983,7 +997,8 @@ def fit(
         raise ParameterError(f"method={method!r}: allowed are 'lm', 'lbfgs'")
     for field, value, low in (("restarts", restarts, 1), ("agree", agree, 1),
                               ("posterior", posterior, 0), ("warmup", warmup, 1),
-                              ("max_iter", max_iter, 1), ("adam_steps", adam_steps, 0)):
+                              ("chains", chains, 1), ("max_iter", max_iter, 1),
+                              ("adam_steps", adam_steps, 0)):
         if not isinstance(value, int) or value < low:
             kind = "a positive" if low else "a non-negative"
             raise ParameterError(f"{field}={value!r}: must be {kind} integer")
@@ -1203,18 +1218,15 @@ def fit(
                                                                 "systematic"))
     cov, values, std, s2, sv, vt = _uncertainty(problem, u, free, H, rss, n_obs)
 
-    draws, acceptance, leapfrogs = None, None, None
+    draws, acceptance, leapfrogs, report = None, None, None, None
     if posterior:
         from ._posterior import sample
 
-        index = np.nonzero(free_np)[0]
-        us, acceptance, leapfrogs = sample(
-            problem, u.astype(u0.dtype), jnp.asarray(index), u0, ts_p, obs_p, weights,
-            s2, cov[index][:, index], jax.random.fold_in(key, 1), draws=posterior,
-            warmup=warmup)
-        draws = jax.tree.map(np.asarray,
-                             jax.vmap(lambda v: _summaries(problem, v, free))(us))
-        acceptance, leapfrogs = float(acceptance), float(leapfrogs)
+        draws, report = sample(problem, u.astype(u0.dtype), free_np, u0, ts_p, obs_p, weights,
+                               s2, cov, jax.random.fold_in(key, 1), _summaries,
+                               draws=posterior, warmup=warmup, chains=chains)
+        acceptance = float(np.mean(report["acceptance"]))
+        leapfrogs = float(np.mean(report["leapfrogs"]))
     identifiable = {c: bool(f) for c, f in zip(components, free_np)}
     notes = dict(notes or {})
     lines = []
@@ -1246,5 +1258,6 @@ def fit(
         restart_losses=np.array([run["loss"] for run in runs]) * c2,
         segments=fitted["segments"],
         posterior=draws, posterior_acceptance=acceptance, posterior_leapfrogs=leapfrogs,
+        posterior_diagnostics=report,
     )
 

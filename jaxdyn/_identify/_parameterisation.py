@@ -75,6 +75,24 @@ class AbstractParameterisation(eqx.Module):
         """
         return {name: self(u)}
 
+    def sampling(self, free: np.ndarray) -> "AbstractParameterisation":
+        """The parameterisation in which a posterior of this quantity is sampled, given which
+        components were fitted (`free`, a NumPy mask): the same values and the same number of
+        components, in coordinates where the posterior is smooth. The default is this one."""
+        return self
+
+    def log_prior(self, u: Float[Array, " n"], start: Float[Array, " n"],
+                  free: Bool[Array, " n"]) -> Float[Array, ""]:
+        """The log prior density of a posterior, up to a constant, in these coordinates.
+
+        The default is weakly informative: an independent Gaussian of standard deviation
+        `PRIOR_SD` (10) on each fitted component around its starting value `start`.
+        """
+        return -0.5 * jnp.sum(jnp.where(free, (u - start) / PRIOR_SD, 0.0) ** 2)
+
+
+PRIOR_SD = 10.0
+
 
 def _element_names(name: str, shape: tuple[int, ...]) -> tuple[str, ...]:
     if shape == ():
@@ -234,6 +252,109 @@ class ValidInertia(AbstractParameterisation):
             f"{name}.principal_moments": moments,
             f"{name}.principal_axes": axes,
         }
+
+    def sampling(self, free):
+        # The moments and axes are singular coordinates where two moments are equal (the
+        # axes of those two turn freely) and near a flat plate (a shape logit runs off to
+        # infinity): a posterior is sampled in the linear coordinates of the shape instead,
+        # when all five shape components are fitted.
+        return _ShapeInertia() if bool(np.all(free[1:])) else self
+
+
+# Below this gap between two eigenvalues of the unit-trace shape, the shape prior of
+# _ShapeInertia is flat: finite where two moments are equal.
+_GAP_FLOOR = 1e-8
+
+# An orthonormal basis (Frobenius) of the traceless symmetric 3x3 matrices.
+_R2, _R6 = 1 / np.sqrt(2), 1 / np.sqrt(6)
+_TRACELESS = np.array([
+    [[_R2, 0, 0], [0, -_R2, 0], [0, 0, 0]],
+    [[_R6, 0, 0], [0, _R6, 0], [0, 0, -2 * _R6]],
+    [[0, _R2, 0], [_R2, 0, 0], [0, 0, 0]],
+    [[0, 0, _R2], [0, 0, 0], [_R2, 0, 0]],
+    [[0, 0, 0], [0, 0, _R2], [0, _R2, 0]],
+])
+
+
+class _ShapeInertia(AbstractParameterisation):
+    r"""A valid inertia tensor from the linear coordinates of its shape: the coordinates in
+    which the posterior of a [`jaxdyn.ValidInertia`][] is sampled.
+
+    Six numbers `u = (s, c_1..c_5)` give the second-moment tensor
+    $\mathbf{M} = \int \mathbf{r}\mathbf{r}^T dm$ and the inertia tensor
+
+    $$\mathbf{M} = e^{s}\,\mathbf{N}, \qquad
+    \mathbf{N} = \tfrac{1}{3}\mathbf{1} + \sum_k c_k \mathbf{E}_k, \qquad
+    \mathbf{I} = \mathrm{tr}(\mathbf{M})\,\mathbf{1} - \mathbf{M},$$
+
+    with $\mathbf{E}_k$ an orthonormal basis of the traceless symmetric matrices: the shape
+    $\mathbf{N}$ (unit trace) is linear in `c`, so the map is smooth everywhere, in particular
+    where two moments are equal (there the moments-and-axes coordinates of
+    [`jaxdyn.ValidInertia`][] are singular: the axes of the two equal moments turn freely)
+    and at a flat plate (where its shape logits run off to infinity). The scale $e^s$ is
+    that of [`jaxdyn.ValidInertia`][] (the same first component).
+
+    Not every `c` is a physical body. The prior is zero outside the physical shapes (those
+    with $\mathbf{N}$ positive semi-definite, the triangle inequality of the moments) and,
+    inside, uniform in the body's principal moments (normalised, over the triangle of
+    physical bodies) and uniform over its orientations (Haar measure on the principal
+    axes), independently; Gaussian of standard deviation `PRIOR_SD` on the scale `s` where
+    the scale is fitted. In the linear coordinates that is the density
+    $\prod_{i<j} |\lambda_i - \lambda_j|^{-1}$ of the eigenvalues $\lambda$ of
+    $\mathbf{N}$: the volume element of the symmetric matrices in eigenvalues and axes is
+    $\prod_{i<j} |\lambda_i - \lambda_j| \, d\lambda \, dR$ (the Vandermonde factor),
+    so a prior uniform over the tensors would make nearly equal moments rare (the sorted
+    moments of its draws repel each other; on a body with two moments 0.1 % apart, 90 %
+    intervals of the larger one covered the truth in 63 % of 40 noise draws). The density
+    is integrable (the equal-moment bodies have codimension 2) and is capped at gaps below
+    `_GAP_FLOOR` (of the unit trace), so that it stays finite where two moments are
+    exactly equal. (A prior uniform in the moments-and-axes coordinates of
+    [`jaxdyn.ValidInertia`][] would pile up at flat plates, where its shape logits run off
+    while the tensor hardly changes.)
+    """
+
+    names: ClassVar[tuple[str, ...]] = ("scale", "shape1", "shape2", "shape3", "shape4",
+                                        "shape5")
+
+    def size(self):
+        return 6
+
+    def components(self, name):
+        return tuple(f"{name}.{c}" for c in self.names)
+
+    def shape_of(self, c: Float[Array, "5"]) -> Float[Array, "3 3"]:
+        """The shape `M / tr(M)` of the coordinates `c`."""
+        basis = jnp.asarray(_TRACELESS, c.dtype)
+        return jnp.eye(3, dtype=c.dtype) / 3 + jnp.einsum("k,kij->ij", c, basis)
+
+    def __call__(self, u):
+        M = jnp.exp(u[0]) * self.shape_of(u[1:])
+        return jnp.trace(M) * jnp.eye(3, dtype=u.dtype) - M
+
+    def to_unconstrained(self, value):
+        value = jnp.asarray(value)
+        tensor = jnp.diag(value) if value.shape == (3,) else value
+        M = 0.5 * jnp.trace(tensor) * jnp.eye(3, dtype=tensor.dtype) - tensor
+        c = jnp.einsum("ij,kij->k", M / jnp.trace(M), jnp.asarray(_TRACELESS, M.dtype))
+        return jnp.concatenate([jnp.log(jnp.trace(M))[None], c])
+
+    def summary(self, name, u, free):
+        # As ValidInertia's (the moments here from the eigenvalues: for draws, not for
+        # intervals, whose derivatives would be ill-conditioned at equal moments).
+        moments, axes = principal_axes(self(u))
+        return {
+            name: self(u),
+            f"{name}.principal_moments": jnp.where(free[0], moments, moments / moments[2]),
+            f"{name}.principal_axes": axes,
+        }
+
+    def log_prior(self, u, start, free):
+        lam = jnp.linalg.eigvalsh(self.shape_of(u[1:]))  # ascending, summing to 1
+        gaps = jnp.stack([lam[1] - lam[0], lam[2] - lam[1], lam[2] - lam[0]])
+        # Uniform in the moments and axes: the inverse of the Vandermonde factor.
+        shape = -jnp.sum(jnp.log(jnp.maximum(gaps, _GAP_FLOOR)))
+        scale = jnp.where(free[0], (u[0] - start[0]) / PRIOR_SD, 0.0)
+        return jnp.where(lam[0] >= 0, shape - 0.5 * scale**2, -jnp.inf)
 
 
 class UnitQuaternion(AbstractParameterisation):
