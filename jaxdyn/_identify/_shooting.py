@@ -158,11 +158,11 @@ def bind_segments(templates, names, ys):
 
 @stored_filter_jit
 def linearise(problem, lay, p, s, smaps, seg_ts, seg_data, seg_w, has_next, wc, *,
-              batch, jacobian=True):
+              batch):
     """Per-segment blocks at `(p, s)`: data normal matrix `N` and gradient `g` over `(p,
-    s_k)`, sums of squares of each output `ss`, the weighted continuity defect `d` with its
-    Jacobians `P` (on `p`), `G` (on `s_k`) and `E` (on `s_{k+1}`). Without `jacobian`, only
-    `ss`, `d` and the weighted data residuals `r`."""
+    s_k)`, the weighted data residuals `r` and the sums of squares of each output `ss`, the
+    weighted continuity defect `d` with its Jacobians `P` (on `p`), `G` (on `s_k`) and `E`
+    (on `s_{k+1}`)."""
     n_p = p.shape[0]
     dyn, static = eqx.partition(smaps, eqx.is_array)
     shift = lambda x: jnp.concatenate([x[1:], x[-1:]])  # noqa: E731
@@ -186,12 +186,7 @@ def linearise(problem, lay, p, s, smaps, seg_ts, seg_data, seg_w, has_next, wc, 
             r = jnp.concatenate(parts + [d]).astype(p.dtype)
             return r, (r, jax.lax.stop_gradient(end))
 
-        x = jnp.concatenate([p, s_k])
-        if not jacobian:
-            r, (_, _) = residuals(x)
-            J = None
-        else:
-            J, (r, end) = jax.jacfwd(residuals, has_aux=True)(x)
+        J, (r, end) = jax.jacfwd(residuals, has_aux=True)(jnp.concatenate([p, s_k]))
         m = r.shape[0] - wc.shape[0]
         rd, d = r[:m], r[m:]
         from ._fit import _width
@@ -200,12 +195,10 @@ def linearise(problem, lay, p, s, smaps, seg_ts, seg_data, seg_w, has_next, wc, 
                   for k, kind in zip(problem.outputs, problem.kinds)]
         offsets = np.cumsum([0] + widths)
         ss = jnp.stack([jnp.sum(rd[a:b] ** 2) for a, b in zip(offsets[:-1], offsets[1:])])
-        if J is None:
-            return {"ss": ss, "d": d, "r": rd}
         Jd, Jc = J[:m], J[m:]
         E = jax.jacfwd(lambda sn: lay.defect(end, lay.state(maps_n, sn, problem.dtype))
                        .astype(p.dtype) * wc * hn)(s_n)
-        return {"N": Jd.T @ Jd, "g": Jd.T @ rd, "ss": ss, "d": d, "P": Jc[:, :n_p],
+        return {"N": Jd.T @ Jd, "g": Jd.T @ rd, "r": rd, "ss": ss, "d": d, "P": Jc[:, :n_p],
                 "G": Jc[:, n_p:], "E": E}
 
     return jax.lax.map(one, xs, batch_size=batch)
@@ -460,10 +453,10 @@ class Shooting:
             start += size
         return out
 
-    def _lin(self, problem, p, s, smaps, wc, jacobian=True):
+    def _lin(self, problem, p, s, smaps, wc):
         problem = dataclasses.replace(problem, max_steps=self.max_steps)
         return linearise(problem, self.lay, p, s, smaps, self.seg_ts, self.seg_data,
-                         self.seg_w, self.has_next, wc, batch=self.batch, jacobian=jacobian)
+                         self.seg_w, self.has_next, wc, batch=self.batch)
 
     def start(self, problem, u):
         """Anchored segment states, their parameterisations, continuity weights and the
@@ -564,7 +557,7 @@ class Shooting:
                 break
         H, *_ = condense(B, p_free, self.s0_free)
         ss = np.asarray(jnp.sum(B["ss"], axis=0))
-        series = self.series(problem, self._lin(problem, p, s, smaps, wc, jacobian=False)["r"])
+        series = self.series(problem, B["r"])  # (the data residuals at the last point)
         data_loss = 0.5 * float(ss.sum())
         u_fit = self.u_of(p, s, jnp.asarray(u))
         Hu = jnp.asarray(H)[self.z_of_u][:, self.z_of_u]
