@@ -516,25 +516,22 @@ class FitResult:
     posterior_diagnostics: dict[str, Any] | None = None
 
 
-def _sums_by_output(r, obs, padded, kinds):
-    """Sums of squared residuals of each output, from the whole residual vector `r`."""
+def _blocks(r, sizes):
+    """The last axis of a residual vector `r` cut into each output's `(count, width)` block
+    (`sizes`: name -> (count, width), in the residual vector's order)."""
     out, start = {}, 0
-    for (name, d), kind in zip(obs.items(), kinds):
-        width = _width(kind, d.shape[1:])
-        out[name] = float(np.sum(r[start:start + padded * width] ** 2))
-        start += padded * width
+    for name, (count, width) in sizes.items():
+        out[name] = r[..., start:start + count * width].reshape(*r.shape[:-1], count, width)
+        start += count * width
     return out
 
 
 def _series_by_output(r, obs, padded, kinds):
     """The residuals of each output `(N, width)` (sample by sample, padding dropped), from
     the whole residual vector `r` of single shooting."""
-    out, start = {}, 0
-    for (name, d), kind in zip(obs.items(), kinds):
-        width = _width(kind, d.shape[1:])
-        out[name] = r[start:start + padded * width].reshape(padded, width)[:d.shape[0]]
-        start += padded * width
-    return out
+    sizes = {name: (padded, _width(kind, d.shape[1:])) for (name, d), kind in
+             zip(obs.items(), kinds)}
+    return {name: b[:obs[name].shape[0]] for name, b in _blocks(r, sizes).items()}
 
 
 # Residuals of a fit at the optimum are white noise where the model holds (their lag-1
@@ -1164,9 +1161,9 @@ def fit(
                 sums = dict(zip(outputs, (float(x) for x in best["ss"])))
                 return best["H"], jnp.asarray(sum(sums.values())), sums, best["series"]
             r, J = _jacobian(problem, u, ts_p, obs_p, weights)
-            r = np.asarray(r)
-            return (J.T @ J, jnp.sum(r**2), _sums_by_output(r, obs, ts_p.size, problem.kinds),
-                    _series_by_output(r, obs, ts_p.size, problem.kinds))
+            series = _series_by_output(np.asarray(r), obs, ts_p.size, problem.kinds)
+            sums = {k: float(np.sum(v**2)) for k, v in series.items()}  # (padding weighs 0)
+            return J.T @ J, jnp.sum(r**2), sums, series
 
         H, rss, sums, series = normal_and_sums(best, u)
         if reweight and len(outputs) > 1:

@@ -189,12 +189,11 @@ def linearise(problem, lay, p, s, smaps, seg_ts, seg_data, seg_w, has_next, wc, 
         J, (r, end) = jax.jacfwd(residuals, has_aux=True)(jnp.concatenate([p, s_k]))
         m = r.shape[0] - wc.shape[0]
         rd, d = r[:m], r[m:]
-        from ._fit import _width
+        from ._fit import _blocks, _width
 
-        widths = [data_k[k].shape[0] * _width(kind, data_k[k].shape[1:])
-                  for k, kind in zip(problem.outputs, problem.kinds)]
-        offsets = np.cumsum([0] + widths)
-        ss = jnp.stack([jnp.sum(rd[a:b] ** 2) for a, b in zip(offsets[:-1], offsets[1:])])
+        sizes = {k: (data_k[k].shape[0], _width(kind, data_k[k].shape[1:]))
+                 for k, kind in zip(problem.outputs, problem.kinds)}
+        ss = jnp.stack([jnp.sum(b**2) for b in _blocks(rd, sizes).values()])
         Jd, Jc = J[:m], J[m:]
         E = jax.jacfwd(lambda sn: lay.defect(end, lay.state(maps_n, sn, problem.dtype))
                        .astype(p.dtype) * wc * hn)(s_n)
@@ -441,17 +440,12 @@ class Shooting:
     def series(self, problem, r) -> dict[str, np.ndarray]:
         """The data residuals `r` `(S, m)` of the segments as each output's residuals over
         the record's samples `(N, width)`, in time order."""
-        from ._fit import _width
+        from ._fit import _blocks, _width
 
-        r, valid = np.asarray(r), self.seg.weights > 0
-        out, start = {}, 0
-        for name, kind in zip(problem.outputs, problem.kinds):
-            d = self.seg.data[name]
-            width = _width(kind, d.shape[2:])
-            size = d.shape[1] * width
-            out[name] = r[:, start:start + size].reshape(d.shape[0], d.shape[1], width)[valid]
-            start += size
-        return out
+        sizes = {name: (self.seg.data[name].shape[1], _width(kind, self.seg.data[name].shape[2:]))
+                 for name, kind in zip(problem.outputs, problem.kinds)}
+        valid = self.seg.weights > 0
+        return {name: b[valid] for name, b in _blocks(np.asarray(r), sizes).items()}
 
     def _lin(self, problem, p, s, smaps, wc):
         problem = dataclasses.replace(problem, max_steps=self.max_steps)
