@@ -269,7 +269,7 @@ class _Run:
         if unit is None:
             start, stop, times = t_s, t_stop, lambda t: t
         else:
-            controller = controller.on_unit_interval(t_s, unit.span)
+            controller = controller.on_unit_interval(unit)
             term = dfx.ODETerm(unit.vector_field(self.scene.vector_field))
             start, stop, times = jnp.zeros_like(t_s), 1.0, unit.tau
             dt0 = None if dt0 is None else dt0 / unit.safe_span()

@@ -52,8 +52,7 @@ class ScaledPIDController(dfx.AbstractAdaptiveStepSizeController):
     norm: Callable[[PyTree], Any] = optx.rms_norm
     scales: dict | None = None
     time_scale: Any = None
-    start: Any = None  # a run on the unit interval (`on_unit_interval`): its start and span
-    span: Any = None
+    unit: Any = None  # a run on the unit interval (`on_unit_interval`): `jaxdyn._hybrid.Unit`
 
     def bind(self, scene, t0, t1, y0) -> "ScaledPIDController":
         """This controller for a run of `scene` from `y0` over `[t0, t1]`: the natural scales
@@ -75,12 +74,12 @@ class ScaledPIDController(dfx.AbstractAdaptiveStepSizeController):
         return ScaledPIDController(rtol=rtol, atol=jnp.maximum(atol, FLOOR * rtol * smallest),
                                    norm=self.norm, scales=scales, time_scale=time_scale)
 
-    def on_unit_interval(self, start, span) -> "ScaledPIDController":
-        """This (bound) controller for the run in the time `tau = (t - start) / span`, from 0 to
-        1 (see `jaxdyn._hybrid`): the same steps, their underflow still judged in `t`."""
+    def on_unit_interval(self, unit) -> "ScaledPIDController":
+        """This (bound) controller for the run on the unit interval of `unit` (a
+        `jaxdyn._hybrid.Unit`, `tau = (t - start) / span` from 0 to 1): the same steps, their
+        underflow still judged in `t`."""
         return ScaledPIDController(rtol=self.rtol, atol=self.atol, norm=self.norm,
-                                   scales=self.scales, time_scale=self.time_scale, start=start,
-                                   span=span)
+                                   scales=self.scales, time_scale=self.time_scale, unit=unit)
 
     def _inner(self) -> dfx.PIDController:
         return dfx.PIDController(rtol=self.rtol, atol=FLOOR * self.rtol, norm=self.norm)
@@ -92,8 +91,8 @@ class ScaledPIDController(dfx.AbstractAdaptiveStepSizeController):
         if self.scales is None:
             raise ValueError("ScaledPIDController: bind it to the run first (bind)")
         scales, T = self.scales, self.time_scale
-        if self.span is not None:  # the time scale in units of the span
-            T = T / jnp.where(self.span > 0, self.span, jnp.ones_like(self.span))
+        if self.unit is not None:  # the time scale in units of the span
+            T = T / self.unit.safe_span()
 
         # The first step is chosen as diffrax chooses it (Hairer, Norsett & Wanner), on the
         # dimensionless state and in units of the time scale: their rule mixes powers of time
@@ -127,8 +126,8 @@ class ScaledPIDController(dfx.AbstractAdaptiveStepSizeController):
         # rejected step was not finite, as `dt_min_reached` otherwise.
         eps = jnp.finfo(jnp.result_type(t1)).eps
         step, t = t_after - t_next, t1
-        if self.span is not None:
-            step, t = step * self.span, self.start + t1 * self.span
+        if self.unit is not None:
+            step, t = step * self.unit.span, self.unit.start + t1 * self.unit.span
         underflow = ~keep & (step <= underflow_step(t, self.time_scale, eps))
         R = dfx.RESULTS
         result = R.where(underflow, R.where(finite, R.dt_min_reached, R.nonfinite), result)
