@@ -115,6 +115,13 @@ class AbstractEffect(eqx.Module):
         named `"<label>.<name>"`: observable in trajectories and fittable by `fit`."""
         return {}
 
+    def jump_times(self) -> Array | None:
+        """Times, known before the run, at which this effect's torque or state derivative
+        jumps (a zero-order hold's command times), or `None`. The integrator ends a step
+        just before each and starts the next just after (`ScaledPIDController`): a step across
+        a jump would be controlled by an error estimate that assumes a smooth vector field."""
+        return None
+
     def split_momentum(self, y: State, own: State) -> Array | None:
         """For splitting integrators: the internal momentum, if it stays constant while the body
         turns (a constant-speed rotor, free wheels). Effects that exchange momentum or apply

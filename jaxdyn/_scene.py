@@ -251,6 +251,12 @@ class Scene(eqx.Module):
                 events[f"{label}.{name}"] = _OwnEvent(fn, label)
         return events
 
+    def jump_times(self) -> Array | None:
+        """The times at which an effect's torque jumps (`AbstractEffect.jump_times`), sorted,
+        or `None` where none does."""
+        parts = [j for j in (e.jump_times() for e in self.effects) if j is not None]
+        return jnp.sort(jnp.concatenate([jnp.ravel(j) for j in parts])) if parts else None
+
     @property
     def max_switches(self) -> int:
         """The most switches one run may take: the body's mode switches and the switching

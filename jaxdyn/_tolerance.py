@@ -45,6 +45,13 @@ class ScaledPIDController(dfx.AbstractAdaptiveStepSizeController):
 
     - `rtol`: relative tolerance.
     - `atol`: absolute floor in the state's own units (`0`: none, the default).
+
+    Where the scene's torques jump at known times (`Scene.jump_times`: a zero-order hold's
+    commands), a step ends just before each jump and the next starts just after it (by
+    `underflow_step`, far below any step), as diffrax's `ClipStepSizeController(jump_ts=...)`
+    does, but finding the next jump by bisection: a step across a jump would be accepted by
+    an error estimate that assumes a smooth vector field, and its error would change
+    discontinuously with the parameters (a fit's loss at the integration's resolution).
     """
 
     rtol: Any
@@ -53,6 +60,7 @@ class ScaledPIDController(dfx.AbstractAdaptiveStepSizeController):
     scales: dict | None = None
     time_scale: Any = None
     unit: Any = None  # a run on the unit interval (`on_unit_interval`): `jaxdyn._hybrid.Unit`
+    jumps: Any = None  # sorted times (in `t`) at which the vector field jumps, or `None`
 
     def bind(self, scene, t0, t1, y0) -> "ScaledPIDController":
         """This controller for a run of `scene` from `y0` over `[t0, t1]`: the natural scales
@@ -71,15 +79,45 @@ class ScaledPIDController(dfx.AbstractAdaptiveStepSizeController):
         scales = {k: jnp.maximum(s, floor.astype(s.dtype)) for k, s in scales.items()}
         scales, time_scale = jax.lax.stop_gradient((scales, time_scale))
         smallest = jnp.min(jnp.stack([jnp.min(s) for s in scales.values()]))
+        jumps = scene.jump_times()
+        jumps = None if jumps is None else jax.lax.stop_gradient(jumps.astype(t0.dtype))
         return ScaledPIDController(rtol=rtol, atol=jnp.maximum(atol, FLOOR * rtol * smallest),
-                                   norm=self.norm, scales=scales, time_scale=time_scale)
+                                   norm=self.norm, scales=scales, time_scale=time_scale,
+                                   jumps=jumps)
 
     def on_unit_interval(self, unit) -> "ScaledPIDController":
         """This (bound) controller for the run on the unit interval of `unit` (a
         `jaxdyn._hybrid.Unit`, `tau = (t - start) / span` from 0 to 1): the same steps, their
         underflow still judged in `t`."""
         return ScaledPIDController(rtol=self.rtol, atol=self.atol, norm=self.norm,
-                                   scales=self.scales, time_scale=self.time_scale, unit=unit)
+                                   scales=self.scales, time_scale=self.time_scale, unit=unit,
+                                   jumps=self.jumps)
+
+    def _at_jumps(self, t_start, t_end, t_stop):
+        """The next step `[t_start, t_end]` (the solver's time) kept off the jumps before the
+        run's end `t_stop`: a start within twice `underflow_step` before a jump moves to that
+        step after it (and reports the jump, so that a first-same-as-last solver evaluates the
+        vector field anew), an end past the next jump moves to that step before it."""
+        J = self.jumps
+        to_t = (lambda s: s) if self.unit is None else self.unit.time
+        to_s = (lambda t: t) if self.unit is None else self.unit.tau
+        eps = jnp.finfo(jnp.result_type(t_start)).eps
+
+        def next_jump(i):
+            j = J[jnp.minimum(i, J.shape[0] - 1)]
+            return j, underflow_step(j, self.time_scale, eps), i < J.shape[0]
+
+        ts = to_t(t_start)
+        i = jnp.searchsorted(J, ts, side="right", method="scan_unrolled")  # the next jump
+        j, m, has = next_jump(i)
+        bump = has & (ts >= j - 2 * m)  # (2: the end of a clipped step, after rounding)
+        ts_new = jnp.where(bump, j + m, ts)
+        j, m, has = next_jump(jnp.where(bump, i + 1, i))
+        te = to_t(t_end) + (ts_new - ts)
+        clip = has & (te > j - m) & (j - 2 * m > ts_new) & (j + 2 * m < to_t(t_stop))
+        t_start = jnp.where(bump, to_s(ts_new), t_start)
+        t_end = jnp.where(clip, to_s(j - m), jnp.where(bump, to_s(te), t_end))
+        return t_start, t_end, bump
 
     def _inner(self) -> dfx.PIDController:
         return dfx.PIDController(rtol=self.rtol, atol=FLOOR * self.rtol, norm=self.norm)
@@ -107,7 +145,10 @@ class ScaledPIDController(dfx.AbstractAdaptiveStepSizeController):
         tau1, state = self._inner().init(terms, zero, (t1 - t0) / T,
                                          jax.tree.map(_div, y0, scales), tau0, args,
                                          scaled_func, error_order)
-        return t0 + tau1 * T, state
+        t_first = t0 + tau1 * T
+        if self.jumps is not None:
+            _, t_first, _ = self._at_jumps(t0, t_first, t1)
+        return t_first, (state, t1)  # (the run's end, for the jumps)
 
     def adapt_step_size(self, t0, t1, y0, y1_candidate, args, y_error, error_order,
                         controller_state):
@@ -119,8 +160,9 @@ class ScaledPIDController(dfx.AbstractAdaptiveStepSizeController):
                                     for e, z in zip(jax.tree.leaves(err),
                                                     jax.tree.leaves(z1))]))
         err = jax.tree.map(lambda e: jnp.where(finite, e, jnp.full_like(e, 1e30)), err)
+        state, t_stop = controller_state
         keep, t_next, t_after, jump, state, result = self._inner().adapt_step_size(
-            t0, t1, z0, z1, args, err, error_order, controller_state)
+            t0, t1, z0, z1, args, err, error_order, state)
         # Step-size underflow (as jaxdyn's batch engine decides it): the next step no longer
         # resolves the time, at round-off of `max(|t|, T)`. Reported as `nonfinite` where the
         # rejected step was not finite, as `dt_min_reached` otherwise.
@@ -131,7 +173,10 @@ class ScaledPIDController(dfx.AbstractAdaptiveStepSizeController):
         underflow = ~keep & (step <= underflow_step(t, self.time_scale, eps))
         R = dfx.RESULTS
         result = R.where(underflow, R.where(finite, R.dt_min_reached, R.nonfinite), result)
-        return keep, t_next, t_after, jump, state, result
+        if self.jumps is not None:
+            t_next, t_after, bumped = self._at_jumps(t_next, t_after, t_stop)
+            jump = jump | bumped
+        return keep, t_next, t_after, jump, (state, t_stop), result
 
 
 def underflow_step(t, time_scale, eps):

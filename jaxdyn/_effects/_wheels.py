@@ -192,6 +192,10 @@ class Wheels(AbstractEffect):
             y["dissipated"] = jnp.zeros((), omega.dtype)
         return y
 
+    def jump_times(self):
+        jumps = getattr(self.motor, "jump_times", None)
+        return None if jumps is None else jumps()
+
     def speed(self, y, own) -> Float[Array, " N"]:
         """Wheel spins relative to the body, `Omega_i = h_i / J_i - g_i . w`."""
         return own["momentum"] / self.inertia - self.axes @ y["omega"]
@@ -285,8 +289,12 @@ class CommandedTorques(eqx.Module):
              "must be finite and strictly increasing"),
         ])
 
+    def jump_times(self) -> Float[Array, " K"]:
+        """The command times: the torques jump there."""
+        return self.times
+
     def __call__(self, t, y, wheels) -> Array:
-        k = jnp.searchsorted(self.times, t, side="right") - 1
+        k = jnp.searchsorted(self.times, t, side="right", method="scan_unrolled") - 1
         held = self.torques[jnp.clip(k, 0, self.times.size - 1)]
         return jnp.where(k >= 0, held, 0.0).astype(y["omega"].dtype)
 

@@ -1089,8 +1089,9 @@ def fit(
                 "iterations": iterations, "history": np.concatenate(history),
                 "stages": tuple(stages)}
 
-    def _multiple(u, warm_up):
-        """Multiple shooting from `u`, after single shooting on the record's start."""
+    def _multiple(u, warm_up, resume=None):
+        """Multiple shooting from `u`, after single shooting on the record's start (or, with
+        `resume`, from the segment states of an earlier run)."""
         history, stages, iterations = [], [], 0
         if warm_up:
             for h in (0.25, 0.5, 1.0):
@@ -1106,7 +1107,7 @@ def fit(
         # (A refit from an optimum, `warm_up=False`, needs no continuation.)
         run = shooting.run(problem, u, free_np, tol, max_iter,
                            _tick if progress else _silent_tick,
-                           stages=None if warm_up else (1.0,))
+                           stages=None if warm_up else (1.0,), resume=resume)
         if not run["converged"]:
             # The segments' defects did not close (an effect whose torque is not smooth in the
             # state, as a saturating B-dot law): single shooting finishes from multiple
@@ -1119,8 +1120,10 @@ def fit(
                 "stages": (*stages, *(iterations + s_ for s_ in run["stages"])),
                 "iterations": iterations + run["iterations"]}
 
-    def _run_start(u, horizons=horizons, warm_up=True):
-        return _multiple(u, warm_up) if shooting is not None else _single(u, horizons, warm_up)
+    def _run_start(u, horizons=horizons, warm_up=True, resume=None):
+        if shooting is not None:
+            return _multiple(u, warm_up, resume)
+        return _single(u, horizons, warm_up)
 
     def _solve():
         """Every start, the best one (refitted with each output weighted by its own residual
@@ -1173,7 +1176,9 @@ def fit(
             problem = eqx.tree_at(lambda p: p.sigma, problem,
                                   tuple(jnp.asarray(rms[k] * setup.scale, dtype)
                                         for k in outputs))
-            again = _run_start(u, horizons=(1.0,), warm_up=False)
+            # (Multiple shooting resumes from its segment states: re-anchored at the data, they
+            # would start far from the optimum in the new weights.)
+            again = _run_start(u, horizons=(1.0,), warm_up=False, resume=best.get("lifted"))
             best = {**again, "history": np.concatenate([best["history"], again["history"]]),
                     "stages": best["stages"] + tuple(best["iterations"] + s_
                                                      for s_ in again["stages"]),

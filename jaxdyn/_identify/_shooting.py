@@ -44,6 +44,8 @@ from ._parameterisation import Unconstrained, UnitQuaternion
 
 _CONTINUITY = 10.0  # weight of a continuity defect, relative to its segment's data
 _STAGES = (1e-2, 1.0)  # continuation: factors of the continuity weights
+_LIFTED_TOL = 1e-4  # relative tolerance of the lifted stages (the condensed steps finish)
+_INSIGNIFICANT = 1e-2  # a condensed step this many standard deviations long ends the fit
 _MEMORY = 2**28  # bytes of Jacobian blocks and saved tangents per chunk of segments
 _SEGMENT_STEPS = 20_000
 _CPU_BATCH = 8  # segments per batch of a linearisation on a CPU (see `chunk`)
@@ -318,12 +320,14 @@ def condense(B, p_free, s0_free):
 @jax.jit
 def condensed_step(B, p_free, s0_free):
     """A constrained Gauss--Newton step: `dz` from the condensed normal equations, each
-    segment's state change from the linearised continuity conditions."""
+    segment's state change from the linearised continuity conditions; and `dz^T H dz`, the
+    step's squared length in the metric of the estimate's covariance (times the residual
+    variance)."""
     H, grad, a, Psi = condense(B, p_free, s0_free)
     free = jnp.concatenate([p_free, s0_free])
     dz = -jnp.linalg.solve(H + jnp.diag(jnp.where(free, 0.0, 1.0)), grad)
     n_p = p_free.shape[0]
-    return dz[:n_p], a + jnp.einsum("ksz,z->ks", Psi, dz)
+    return dz[:n_p], a + jnp.einsum("ksz,z->ks", Psi, dz), dz @ H @ dz
 
 
 def continuity_weights(B, lay: Layout, rho: float = _CONTINUITY) -> np.ndarray:
@@ -452,12 +456,16 @@ class Shooting:
         return linearise(problem, self.lay, p, s, smaps, self.seg_ts, self.seg_data,
                          self.seg_w, self.has_next, wc, batch=self.batch)
 
-    def start(self, problem, u):
+    def start(self, problem, u, resume=None):
         """Anchored segment states, their parameterisations, continuity weights and the
-        first linearisation at `u`."""
-        ys = self.anchor(problem, u)
-        smaps, s = bind_segments(self.templates, self.lay.s_names, ys)
-        p = jnp.asarray(u)[self.p_of_u]
+        first linearisation at `u`; or, with `resume` (`(p, s, smaps)` of an earlier run on
+        this record), from that run's segment states."""
+        if resume is None:
+            ys = self.anchor(problem, u)
+            smaps, s = bind_segments(self.templates, self.lay.s_names, ys)
+            p = jnp.asarray(u)[self.p_of_u]
+        else:
+            p, s, smaps = resume
         ones = jnp.ones(self.n_s, p.dtype)
         B = self._lin(problem, p, s, smaps, ones)
         wc = jnp.asarray(continuity_weights(B, self.lay), p.dtype)
@@ -509,19 +517,22 @@ class Shooting:
                     break
         return p, s, B, k, converged
 
-    def run(self, problem, u, free, tol, max_iter, tick, stages=None):
-        """Levenberg--Marquardt on the lifted problem from `u`, then constrained Gauss--Newton
-        steps that close the continuity defects; returns the run's summary (as single
-        shooting's) with the normal matrix `H` of `u` and the sums of squares by output."""
+    def run(self, problem, u, free, tol, max_iter, tick, stages=None, resume=None):
+        """Levenberg--Marquardt on the lifted problem from `u` (or from the segment states of
+        an earlier run, `resume`: see `start`), then constrained Gauss--Newton steps that close
+        the continuity defects; returns the run's summary (as single shooting's) with the
+        normal matrix `H` of `u`, the sums of squares by output and the segment states
+        (`lifted`, to resume from)."""
         free = np.asarray(free)
         p_free = jnp.asarray(free[self.u_is_p])
-        p, s, smaps, wc, B = self.start(problem, u)
-        history, iterations, converged = [], 0, False
+        p, s, smaps, wc, B = self.start(problem, u, resume)
         # Continuation in the continuity weight: nearly independent segments first (each
         # prediction starts in phase with its data: the basin of a short record), then tied.
-        stages = _STAGES if stages is None else stages
+        # A run resumed from an optimum (the same record, other output weights) needs no
+        # lifted stage: the condensed steps below start at closed defects.
+        stages = (_STAGES if stages is None else stages) if resume is None else ()
+        history, iterations, converged = [], 0, not stages
         for i, factor in enumerate(stages):
-            last = i == len(stages) - 1
             if i == 0:
                 scale = jnp.asarray(factor, wc.dtype)
                 B = {**B, "d": B["d"] * scale, "P": B["P"] * scale, "G": B["G"] * scale,
@@ -530,13 +541,19 @@ class Shooting:
                 B = self._lin(problem, p, s, smaps, wc * factor)
             p, s, B, k, converged = self._levenberg_marquardt(
                 problem, p, s, smaps, wc * factor, B, p_free,
-                tol if last else max(tol, 1e-4), max_iter, tick, history)
+                max(tol, _LIFTED_TOL), max_iter, tick, history)
             iterations += k
-        wc = wc * stages[-1]
-        # Close the defects: constrained Gauss-Newton (condensed) steps.
+        wc = wc * (stages[-1] if stages else 1.0)
+        # Close the defects: constrained Gauss-Newton (condensed) steps, which converge
+        # quadratically from the lifted optimum. They stop at a step below `tol` (relative)
+        # or, on noisy data, below `_INSIGNIFICANT` standard deviations of the estimate: the
+        # integration's own error (at `rtol`) moves the segments' ends, so steps driven by it
+        # never vanish, and a loss or defect criterion would wait for them in vain.
         closed = False
+        dof = max(self.n_obs - int(np.sum(free)), 1)
         for _ in range(8):
-            dp, ds = condensed_step(B, p_free, self.s0_free)
+            dp, ds, metric = condensed_step(B, p_free, self.s0_free)
+            s2 = float(jnp.sum(B["ss"])) / dof
             p1, s1 = p + dp, s + ds
             B1 = self._lin(problem, p1, s1, smaps, wc)
             tick(_lifted(B1))
@@ -546,7 +563,8 @@ class Shooting:
             p, s, B = p1, s1, B1
             iterations += 1
             history.append(_lifted(B))
-            if step <= tol * (1 + _max_abs(p, s)):
+            if (step <= tol * (1 + _max_abs(p, s))
+                    or float(metric) <= _INSIGNIFICANT**2 * s2):
                 closed = True
                 break
         H, *_ = condense(B, p_free, self.s0_free)
@@ -558,7 +576,7 @@ class Shooting:
         return {"loss": data_loss if np.isfinite(data_loss) else np.inf, "u": u_fit,
                 "converged": bool(converged and closed), "iterations": iterations,
                 "history": np.asarray(history), "stages": (0,), "H": Hu, "ss": ss,
-                "series": series,
+                "series": series, "lifted": (p, s, smaps),
                 "defect": float(jnp.max(jnp.abs(B["d"])))}
 
 
