@@ -18,7 +18,9 @@ from collections.abc import Callable
 from typing import Any
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from .._effect import AbstractEffect
@@ -255,6 +257,8 @@ class Wheels(AbstractEffect):
 class CommandedTorques(eqx.Module):
     """Motor torques for [`jaxdyn.Wheels`][] as commanded in telemetry: `torques[k]` held from
     `times[k]` until the next command (zero-order hold; before the first command, none).
+    A command equal to the one before it is dropped (it changes nothing): the integrator
+    steps to each change of the torques (`jump_times`), not across it.
     Known inputs when identifying a body from its wheels' telemetry: the torques, in
     absolute units, fix the scale of the inertia.
 
@@ -277,6 +281,14 @@ class CommandedTorques(eqx.Module):
         if torques.ndim != 2 or torques.shape[0] != times.size:
             raise ParameterError(f"commanded_torques.torques has shape {torques.shape}: "
                                  f"expected ({times.size}, N), one row per command time")
+        if not isinstance(times, jax.core.Tracer) and not isinstance(torques, jax.core.Tracer):
+            # A command that repeats the previous one is no jump: dropped, so that the
+            # integrator stops at the changes only (telemetry holds a command over many rows).
+            u = np.asarray(torques)
+            keep = np.ones(u.shape[0], bool)
+            keep[1:] = np.any(u[1:] != u[:-1], axis=1)
+            if not keep.all():
+                times, torques = times[keep], torques[keep]
         self.times, self.torques = times, torques
 
     def __check_init__(self):
