@@ -607,7 +607,7 @@ class Shooting:
             # length, in units of the residual variance). Its normal
             # matrix with the continuity weighted `_TIGHT` times more matches the condensed
             # one (to 2e-4 in the variances on the 1e4-sample wheel record of
-            # `benchmarks/identify.py`, where both can be had; 30-76 % larger at the stages'
+            # `benchmarks/identify.py`, where both can be had; 3-76 % larger at the stages'
             # weights, 0.7 % off at 1e4 times: round-off).
             p, s, B = lifted_optimum
             floor = 0.5 * _INSIGNIFICANT**2 * float(jnp.sum(B["ss"])) / dof
