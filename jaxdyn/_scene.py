@@ -255,7 +255,9 @@ class Scene(eqx.Module):
         """The times at which an effect's torque jumps (`AbstractEffect.jump_times`), sorted,
         or `None` where none does."""
         parts = [j for j in (e.jump_times() for e in self.effects) if j is not None]
-        return jnp.sort(jnp.concatenate([jnp.ravel(j) for j in parts])) if parts else None
+        if len(parts) < 2:  # (one effect's times are sorted already)
+            return parts[0] if parts else None
+        return jnp.sort(jnp.concatenate([jnp.ravel(j) for j in parts]))
 
     @property
     def max_switches(self) -> int:

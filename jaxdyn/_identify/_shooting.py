@@ -206,6 +206,14 @@ def linearise(problem, lay, p, s, smaps, seg_ts, seg_data, seg_w, has_next, wc, 
     return jax.lax.map(one, xs, batch_size=batch)
 
 
+def _weighted(B, w):
+    """Blocks `B` with the continuity residuals weighted `w` times more (a scalar, or one
+    factor per component of a defect): the defects and their Jacobians scale alike."""
+    w = jnp.asarray(w)
+    rows = w[:, None] if w.ndim else w
+    return {**B, "d": B["d"] * w, "P": B["P"] * rows, "G": B["G"] * rows, "E": B["E"] * rows}
+
+
 def _shift_down(x):
     return jnp.concatenate([jnp.zeros_like(x[:1]), x[:-1]])
 
@@ -490,9 +498,7 @@ class Shooting:
         ones = jnp.ones(self.n_s, p.dtype)
         B = self._lin(problem, p, s, smaps, ones)
         wc = jnp.asarray(continuity_weights(B, self.lay), p.dtype)
-        B = {**B, "d": B["d"] * wc, "P": B["P"] * wc[:, None], "G": B["G"] * wc[:, None],
-             "E": B["E"] * wc[:, None]}
-        return p, s, smaps, wc, B
+        return p, s, smaps, wc, _weighted(B, wc)
 
     def free(self, problem, u, tol):
         """Components of `u` that the data determine (a nonzero column of the condensed
@@ -557,9 +563,7 @@ class Shooting:
         history, iterations, converged = [], 0, not stages
         for i, factor in enumerate(stages):
             if i == 0:
-                scale = jnp.asarray(factor, wc.dtype)
-                B = {**B, "d": B["d"] * scale, "P": B["P"] * scale, "G": B["G"] * scale,
-                     "E": B["E"] * scale}
+                B = _weighted(B, jnp.asarray(factor, wc.dtype))
             else:
                 B = self._lin(problem, p, s, smaps, wc * factor)
             p, s, B, k, converged = self._levenberg_marquardt(
@@ -578,6 +582,7 @@ class Shooting:
         # lifted problem's normal matrix (`lifted_information`).
         closed = False
         dof = max(self.n_obs - int(np.sum(free)), 1)
+        variance = lambda B: float(jnp.sum(B["ss"])) / dof  # noqa: E731 (of the residuals)
         lifted_optimum, previous = (p, s, B), np.inf
         for _ in range(8):
             dp, ds, metric = condensed_step(B, p_free, self.s0_free)
@@ -585,7 +590,7 @@ class Shooting:
             if not metric < previous:  # (not shrinking: no precision left)
                 break
             previous = metric
-            s2 = float(jnp.sum(B["ss"])) / dof
+            s2 = variance(B)
             p1, s1 = p + dp, s + ds
             B1 = self._lin(problem, p1, s1, smaps, wc)
             tick(_lifted(B1))
@@ -604,19 +609,18 @@ class Shooting:
             # The lifted optimum, converged at `tol` (the stages stop at `_LIFTED_TOL`) or
             # where a step would move the estimate by less than `_INSIGNIFICANT` standard
             # deviations (its predicted decrease of the loss is half the square of that
-            # length, in units of the residual variance). Its normal
-            # matrix with the continuity weighted `_TIGHT` times more matches the condensed
-            # one (to 2e-4 in the variances on the 1e4-sample wheel record of
-            # `benchmarks/identify.py`, where both can be had; 3-76 % larger at the stages'
-            # weights, 0.7 % off at 1e4 times: round-off).
+            # length, in units of the residual variance). Its normal matrix with the
+            # continuity weighted `_TIGHT` times more matches the condensed one (to 2e-4 in
+            # the variances on the 1e4-sample wheel record of `benchmarks/identify.py`, where
+            # both can be had; 3-76 % larger at the stages' weights, 0.7 % off at 1e4 times:
+            # round-off).
             p, s, B = lifted_optimum
-            floor = 0.5 * _INSIGNIFICANT**2 * float(jnp.sum(B["ss"])) / dof
+            floor = 0.5 * _INSIGNIFICANT**2 * variance(B)
             p, s, B, k, closed = self._levenberg_marquardt(
                 problem, p, s, smaps, wc, B, p_free, tol, max_iter, tick, history, floor)
             iterations += k
-            f = jnp.asarray(_TIGHT, wc.dtype)
-            H = lifted_information({**B, "d": B["d"] * f, "P": B["P"] * f, "G": B["G"] * f,
-                                    "E": B["E"] * f}, p_free, self.s0_free)
+            H = lifted_information(_weighted(B, jnp.asarray(_TIGHT, wc.dtype)), p_free,
+                                   self.s0_free)
         ss = np.asarray(jnp.sum(B["ss"], axis=0))
         series = self.series(problem, B["r"])  # (the data residuals at the last point)
         data_loss = 0.5 * float(ss.sum())
