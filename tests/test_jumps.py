@@ -79,3 +79,14 @@ def test_the_run_is_smooth_in_the_parameters():
     h = 1e-6
     fd = (np.asarray(end(1.0 + h)) - np.asarray(end(1.0 - h))) / (2 * h)
     assert np.allclose(fd, jvp, rtol=1e-4, atol=1e-4 * np.max(np.abs(jvp))), (fd, jvp)
+
+
+def test_repeated_commands_are_dropped_and_bad_times_still_refused():
+    """A command equal to the one before it changes nothing and is dropped (telemetry holds a
+    command over many rows); times that do not increase are refused even where every command
+    repeats (the dropping must not hide them)."""
+    held = jd.CommandedTorques([0.0, 1.0, 2.0, 3.0], [[1, 0, 0], [1, 0, 0], [0, 1, 0],
+                                                      [0, 1, 0]])
+    assert np.asarray(held.times).tolist() == [0.0, 2.0]
+    with pytest.raises(jd.ParameterError, match="commanded_torques.times"):
+        jd.CommandedTorques([0.0, 2.0, 1.0], np.zeros((3, 3)))

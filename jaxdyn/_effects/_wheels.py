@@ -284,10 +284,11 @@ class CommandedTorques(eqx.Module):
         if not isinstance(times, jax.core.Tracer) and not isinstance(torques, jax.core.Tracer):
             # A command that repeats the previous one is no jump: dropped, so that the
             # integrator stops at the changes only (telemetry holds a command over many rows).
-            u = np.asarray(torques)
+            # (Only valid times: invalid ones are refused by `__check_init__`, whole.)
+            u, t = np.asarray(torques), np.asarray(times)
             keep = np.ones(u.shape[0], bool)
             keep[1:] = np.any(u[1:] != u[:-1], axis=1)
-            if not keep.all():
+            if not keep.all() and np.all(np.isfinite(t)) and np.all(np.diff(t) > 0):
                 times, torques = times[keep], torques[keep]
         self.times, self.torques = times, torques
 
