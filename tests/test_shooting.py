@@ -17,11 +17,10 @@ import jaxdyn as jd
 from jaxdyn._identify import _shooting
 
 
-def test_block_solve_matches_a_dense_solve():
-    """The Levenberg-Marquardt step of the lifted problem, solved segment by segment (block
-    Thomas recursion and a Schur complement), equals the dense solve of the same normal
-    equations assembled from the same blocks; a fixed component does not move."""
-    rng = np.random.default_rng(6001)
+def _random_blocks(seed):
+    """Random lifted blocks (`A`: each segment's data Jacobian) and a fixed component of `p`
+    and of `s_0`."""
+    rng = np.random.default_rng(seed)
     S, n_p, n_s, m, c = 5, 3, 2, 7, 2
     A = rng.normal(size=(S, m, n_p + n_s))
     blocks = {"N": np.einsum("kij,kil->kjl", A, A), "g": rng.normal(size=(S, n_p + n_s)),
@@ -29,15 +28,22 @@ def test_block_solve_matches_a_dense_solve():
               "E": rng.normal(size=(S, c, n_s)), "d": rng.normal(size=(S, c))}
     for k in ("P", "G", "E", "d"):
         blocks[k][-1] = 0.0  # the last segment has no successor
-    p_free, s0_free = np.array([True, False, True]), np.array([True, False])
-    # Dense: the Jacobian of the lifted residuals, row by row.
+    return blocks, A, np.array([True, False, True]), np.array([True, False])
+
+
+def _dense(blocks, A, p_free, s0_free):
+    """The lifted normal matrix `H`, its data part `H_data` and gradient `g`, assembled row by
+    row from the Jacobian of the lifted residuals; fixed components with zero rows and
+    columns (and a unit diagonal in `H`), and the mask of free components."""
+    S, m, _ = A.shape
+    n_p, n_s, c = p_free.size, s0_free.size, blocks["P"].shape[1]
     n = n_p + S * n_s
-    H, g = np.zeros((n, n)), np.zeros(n)
+    H, H_data, g = np.zeros((n, n)), np.zeros((n, n)), np.zeros(n)
     for k in range(S):
         rows = np.zeros((m, n))
         rows[:, :n_p] = A[k, :, :n_p]
         rows[:, n_p + k * n_s:n_p + (k + 1) * n_s] = A[k, :, n_p:]
-        H += rows.T @ rows
+        H_data += rows.T @ rows
         sel = np.r_[np.arange(n_p), n_p + k * n_s + np.arange(n_s)]
         g[sel] += blocks["g"][k]
         if k < S - 1:
@@ -48,8 +54,18 @@ def test_block_solve_matches_a_dense_solve():
             H += crow.T @ crow
             g += crow.T @ blocks["d"][k]
     free = np.r_[p_free, s0_free, np.ones((S - 1) * n_s, bool)]
-    H = np.where(free[:, None] & free[None, :], H, 0.0) + np.diag(~free)
-    g = np.where(free, g, 0.0)
+    mask = free[:, None] & free[None, :]
+    H = np.where(mask, H + H_data, 0.0) + np.diag(~free)
+    return H, np.where(mask, H_data, 0.0), np.where(free, g, 0.0), free
+
+
+def test_block_solve_matches_a_dense_solve():
+    """The Levenberg-Marquardt step of the lifted problem, solved segment by segment (block
+    Thomas recursion and a Schur complement), equals the dense solve of the same normal
+    equations assembled from the same blocks; a fixed component does not move."""
+    blocks, A, p_free, s0_free = _random_blocks(6001)
+    n_p = p_free.size
+    H, _, g, free = _dense(blocks, A, p_free, s0_free)
     lam = 0.3
     damping = lam * np.diag(H)
     x = -np.linalg.solve(H + np.diag(damping), g)
@@ -61,6 +77,28 @@ def test_block_solve_matches_a_dense_solve():
     # The predicted reduction is that of the quadratic model.
     assert float(predicted) == pytest.approx(-(g @ x + 0.5 * x @ (H - np.diag(~free)) @ x),
                                              rel=1e-10)
+
+
+def test_lifted_covariance_is_the_sandwich_of_a_dense_solve():
+    """The lifted estimator's covariance of `z = (p, s_0)` over the residual variance,
+    computed segment by segment, equals `H^-1 H_data H^-1` from the dense lifted normal
+    matrix (only the data rows carry noise), zero on the fixed components; positive definite,
+    and below `H^-1` (which counts the continuity rows as observations)."""
+    blocks, A, p_free, s0_free = _random_blocks(6002)
+    n_p, n_s = p_free.size, s0_free.size
+    H, H_data, _, free = _dense(blocks, A, p_free, s0_free)
+    Hinv = np.linalg.inv(H)
+    sandwich = (Hinv @ H_data @ Hinv)[:n_p + n_s, :n_p + n_s]
+    got = np.asarray(_shooting.lifted_covariance(jax.tree.map(jnp.asarray, blocks),
+                                                 jnp.asarray(p_free), jnp.asarray(s0_free)))
+    assert np.allclose(got, sandwich, rtol=1e-9, atol=1e-12 * np.max(np.abs(sandwich)))
+    z_free = free[:n_p + n_s]
+    assert np.all(got[~z_free] == 0.0) and np.all(got[:, ~z_free] == 0.0)
+    # Positive semidefinite, and below the "posterior" H^-1 (H_data <= H).
+    ev = np.linalg.eigvalsh(got[np.ix_(z_free, z_free)])
+    assert ev.min() > 0
+    gap = (Hinv[:n_p + n_s, :n_p + n_s] - got)[np.ix_(z_free, z_free)]
+    assert np.linalg.eigvalsh(gap).min() > -1e-12 * ev.max()
 
 
 def _same_estimate(single, multiple, names):
@@ -104,11 +142,11 @@ def test_multiple_shooting_gives_the_single_shooting_estimate_and_intervals():
 def test_lifted_optimum_where_the_defects_cannot_close(monkeypatch):
     """On a record so long that the condensed steps lose their precision (propagated over
     hundreds of segments, issue 20's 1e5-sample wheel record), the fit keeps the lifted
-    optimum with tight continuity weights and the lifted problem's normal matrix. Here the
-    condensed steps are refused outright on a short record, where single shooting gives the
-    reference: the same estimate to a small fraction of its interval, the same intervals to
-    0.1 % (here 0.02 %; the lifted problem's own normal matrix, without the tighter continuity
-    weights, gives 0.4 % here and up to 33 % on the 1e4-sample wheel record)."""
+    optimum with the lifted estimator's own covariance. Here the condensed steps are refused
+    outright on a short record, where single shooting gives the reference: the same estimate
+    to a small fraction of its interval; intervals no narrower than single shooting's (the
+    constrained estimator is the efficient one; the lifted residual variance is a little
+    smaller) and not much wider (on a record this short, equal to 2e-4)."""
     rng = np.random.default_rng(6103)
     ts = np.linspace(0.0, 16.0, 64)
     moments, w, q, w0, q0 = _attitude_record(ts)
@@ -134,4 +172,7 @@ def test_lifted_optimum_where_the_defects_cannot_close(monkeypatch):
         a, b = np.asarray(single.values[name]), np.asarray(lifted.values[name])
         sa, sb = np.asarray(single.std[name]), np.asarray(lifted.std[name])
         assert np.all(np.abs(a - b) <= 0.05 * sa), (name, (a - b) / sa)
-        assert np.allclose(sa, sb, rtol=1e-3), (name, sb / sa)
+        # (The largest normalised moment is 1 by definition: no interval to compare.)
+        determined = sa > 1e-9 * np.abs(a)
+        ratio = sb[determined] / sa[determined]
+        assert np.all((ratio >= 1 - 1e-3) & (ratio <= 2)), (name, ratio)

@@ -970,6 +970,10 @@ def fit(
     normal equations are solved segment by segment, so time and memory grow linearly with
     the record. Once converged, the continuity defects are closed exactly (constrained
     Gauss--Newton steps), so the estimate and its intervals are those of single shooting.
+    On a record over which the dynamics amplify a perturbation so much that the closing
+    steps have no precision left (an unstable tumble over hours), the estimate is that of
+    the segmented problem, with its own (sandwich) covariance: honest, and wider than single
+    shooting's would be, since the segments give up part of the long baseline.
 
     **Returns:**
 

@@ -29,6 +29,12 @@ converged, a few constrained Gauss--Newton steps (condensing: each segment's sta
 expressed, through the linearised continuity conditions, by the changes of `p` and `s_0`)
 close the defects exactly, so the estimate is the single-shooting least-squares estimate; the
 condensed normal matrix is that of single shooting, and gives the Gauss--Newton covariance.
+
+Where the dynamics amplify a perturbation over the record (issue 20's 1e5-sample wheel
+record: an integration error grows 1e5-fold over its second half), the condensed steps have
+no precision left and single shooting's estimate is out of reach in floating point. The fit
+then keeps the lifted optimum, whose segments shadow the data with defects far below the
+noise, and reports that estimator's own covariance (`lifted_covariance`).
 """
 
 import dataclasses
@@ -46,7 +52,7 @@ _CONTINUITY = 10.0  # weight of a continuity defect, relative to its segment's d
 _STAGES = (1e-2, 1.0)  # continuation: factors of the continuity weights
 _LIFTED_TOL = 1e-4  # relative tolerance of the lifted stages (the condensed steps finish)
 _INSIGNIFICANT = 1e-2  # a condensed step this many standard deviations long ends the fit
-_TIGHT = 100.0  # continuity weights of the normal matrix where the defects cannot close
+_HOPELESS = 100.0  # a first condensed step this many standard deviations long is not tried
 _MEMORY = 2**28  # bytes of Jacobian blocks and saved tangents per chunk of segments
 _SEGMENT_STEPS = 20_000
 _CPU_BATCH = 8  # segments per batch of a linearisation on a CPU (see `chunk`)
@@ -327,23 +333,39 @@ def condense(B, p_free, s0_free):
 
 
 @jax.jit
-def lifted_information(B, p_free, s0_free):
-    """The normal matrix of `z = (p, s_0)` in the lifted problem: the segment states
-    `s_1, ..., s_{S-1}` eliminated by the block Thomas recursion (the Schur complement), the
-    continuity residuals counting as observations of their weight. Where the defects close,
-    the condensed matrix (`condense`) is the single-shooting one; on a record so long that
-    propagating sensitivities from segment to segment (`condense`) loses all precision, this
-    one stays as well conditioned as the steps of the lifted problem."""
+def lifted_covariance(B, p_free, s0_free):
+    """The covariance of `z = (p, s_0)` at the lifted optimum, over the residual variance:
+    the estimator is the minimiser of the lifted loss at these continuity weights, so the
+    covariance is the sandwich `H^-1 A H^-1` (restricted to `z`), where `H` is the lifted
+    normal matrix (data and continuity residuals) and `A` its data part: only the data are
+    noisy. The columns `H^-1 e_z` come from the block Thomas recursion and the Schur
+    complement on `p`, as the steps do, so the cost stays linear in the segments.
+
+    Where the defects close, the condensed matrix (`condense`) gives single shooting's
+    covariance; on a record where the dynamics amplify a perturbation over the record (issue
+    20's 1e5-sample wheel record: a state error grows 1e5-fold in its second half), closing
+    the defects is out of reach in floating point. The lifted estimator lets the segments
+    shadow the data, and its covariance is larger than what the tied-up (condensed or tightly
+    weighted) problem would claim: 1.5-3 times in some standard deviations there."""
     Hpp, Hps, D, C, _, _ = _normal_blocks(B, p_free, s0_free)
-    Hzz = jnp.block([[Hpp, Hps[0]], [Hps[0].T, D[0]]])
-    if D.shape[0] > 1:
-        # Coupling of z to the chain s_1, ...: p to every segment, s_0 to s_1 alone.
-        from_s0 = jnp.zeros_like(D[1:]).at[0].set(C[0])
-        K = jnp.concatenate([Hps[1:], from_s0], axis=1)  # (S - 1, n_z, n_s)
-        Y = _block_tridiagonal_solve(D[1:], C[1:], jnp.swapaxes(K, 1, 2))
-        Hzz = Hzz - jnp.einsum("kzs,ksy->zy", K, Y)
+    N = B["N"]
+    S, n_s, n_p = D.shape[0], D.shape[1], Hpp.shape[0]
+    n_z = n_p + n_s
+    # Right-hand sides e_z: unit vectors of p, and of s_0 (in the first segment's rows).
+    bp = jnp.eye(n_p, n_z, dtype=D.dtype)
+    bs = jnp.zeros((S, n_s, n_z), D.dtype).at[0].set(jnp.eye(n_s, n_z, n_p, dtype=D.dtype))
+    Y = _block_tridiagonal_solve(D, C, jnp.concatenate([jnp.swapaxes(Hps, 1, 2), bs], axis=2))
+    Ysp, Ysb = Y[:, :, :n_p], Y[:, :, n_p:]
+    schur = Hpp - jnp.einsum("kps,ksq->pq", Hps, Ysp)
+    xp = jnp.linalg.solve(schur, bp - jnp.einsum("kps,ksz->pz", Hps, Ysb))
+    xs = Ysb - jnp.einsum("ksp,pz->ksz", Ysp, xp)
+    X = jnp.concatenate([jnp.broadcast_to(xp, (S, n_p, n_z)), xs], axis=1)  # H^-1 e_z by segment
+    fp = p_free.astype(N.dtype)
+    fs = jnp.ones((S, n_s), N.dtype).at[0].set(s0_free.astype(N.dtype))
+    X = X * jnp.concatenate([jnp.broadcast_to(fp, (S, n_p)), fs], axis=1)[:, :, None]
+    cov = jnp.einsum("kiz,kij,kjy->zy", X, N, X)
     free = jnp.concatenate([p_free, s0_free])
-    return jnp.where(free[:, None] & free[None, :], Hzz, 0.0)
+    return jnp.where(free[:, None] & free[None, :], cov, 0.0)
 
 
 @jax.jit
@@ -515,12 +537,18 @@ class Shooting:
     def _levenberg_marquardt(self, problem, p, s, smaps, wc, B, p_free, tol, max_iter, tick,
                              history, floor=0.0):
         """Levenberg--Marquardt on the lifted problem; converged at a step or decrease below
-        `tol` (relative), or at an accepted step whose predicted decrease is below `floor`."""
+        `tol` (relative), or where the undamped (Gauss--Newton) step's predicted decrease is
+        below `floor`: then without another linearisation, whose decrease would be round-off
+        and its step as often rejected as accepted."""
         loss = _lifted(B)
         history.append(loss)
         tick(loss)
         lam, nu, converged, k = 1e-3, 2.0, False, 0
         for k in range(1, max_iter + 1):  # noqa: B007
+            if floor > 0 and float(lm_step(B, 0.0, p_free, self.s0_free)[2]) <= floor:
+                converged = True
+                k -= 1
+                break
             dp, ds, predicted = lm_step(B, lam, p_free, self.s0_free)
             p1, s1 = p + dp, s + ds
             B1 = self._lin(problem, p1, s1, smaps, wc)
@@ -532,7 +560,10 @@ class Shooting:
                 small_step = _max_abs(dp, ds) <= tol * (1 + _max_abs(p1, s1))
                 small_decrease = loss - loss1 <= tol * loss1 or predicted <= floor
                 p, s, B, loss = p1, s1, B1, loss1
-                lam *= max(1 / 3, 1 - (2 * ratio - 1) ** 3)
+                # (Nielsen's update, and a tenth where the linear model predicted the decrease
+                # well: the lifted problem is nearly linear near its optimum, and a third per
+                # step took 9 steps to undo the starting damping on the 1e5-sample record.)
+                lam *= 0.1 if ratio > 0.9 else max(1 / 3, 1 - (2 * ratio - 1) ** 3)
                 nu = 2.0
                 history.append(loss)
                 if small_step or small_decrease:
@@ -577,20 +608,22 @@ class Shooting:
         # integration's own error (at `rtol`) moves the segments' ends, so steps driven by it
         # never vanish, and a loss or defect criterion would wait for them in vain.
         # On a record so long that the condensed steps lose their precision (sensitivities
-        # propagated over hundreds of segments), their lengths stop shrinking: the fit then
-        # keeps the lifted optimum, whose defects are far below the data's noise, with the
-        # lifted problem's normal matrix (`lifted_information`).
+        # propagated over hundreds of segments, through dynamics that amplify them), the
+        # steps are hopelessly long or stop shrinking: the fit then keeps the lifted optimum,
+        # whose defects are far below the data's noise, with its own covariance.
         closed = False
         dof = max(self.n_obs - int(np.sum(free)), 1)
         variance = lambda B: float(jnp.sum(B["ss"])) / dof  # noqa: E731 (of the residuals)
-        lifted_optimum, previous = (p, s, B), np.inf
+        lifted_optimum, s2 = (p, s, B), variance(B)
+        previous = _HOPELESS**2 * s2
         for _ in range(8):
             dp, ds, metric = condensed_step(B, p_free, self.s0_free)
             metric = float(metric)
-            if not metric < previous:  # (not shrinking: no precision left)
+            # Longer than the last step, or a first step `_HOPELESS` standard deviations
+            # long: the condensed linearisation has no precision left.
+            if not metric < previous:
                 break
             previous = metric
-            s2 = variance(B)
             p1, s1 = p + dp, s + ds
             B1 = self._lin(problem, p1, s1, smaps, wc)
             tick(_lifted(B1))
@@ -604,23 +637,29 @@ class Shooting:
                 closed = True
                 break
         if closed:
+            # Closing (S - 1) n_s defects, each far below the noise, adds about that many
+            # residual variances to the data's sum of squares at most; a closed point that
+            # explains the data worse came from a linearisation without precision.
+            constraints = (self.segments - 1) * self.n_s
+            closed = (float(jnp.sum(B["ss"])) - float(jnp.sum(lifted_optimum[2]["ss"]))
+                      <= 2 * max(constraints, 1) * s2)
+        if closed:
             H, *_ = condense(B, p_free, self.s0_free)
         else:
             # The lifted optimum, converged at `tol` (the stages stop at `_LIFTED_TOL`) or
             # where a step would move the estimate by less than `_INSIGNIFICANT` standard
             # deviations (its predicted decrease of the loss is half the square of that
-            # length, in units of the residual variance). Its normal matrix with the
-            # continuity weighted `_TIGHT` times more matches the condensed one (to 2e-4 in
-            # the variances on the 1e4-sample wheel record of `benchmarks/identify.py`, where
-            # both can be had; 3-76 % larger at the stages' weights, 0.7 % off at 1e4 times:
-            # round-off).
+            # length, in units of the residual variance), and the estimator's own covariance
+            # (`lifted_covariance`), as a normal matrix.
             p, s, B = lifted_optimum
-            floor = 0.5 * _INSIGNIFICANT**2 * variance(B)
+            floor = 0.5 * _INSIGNIFICANT**2 * s2
             p, s, B, k, closed = self._levenberg_marquardt(
                 problem, p, s, smaps, wc, B, p_free, tol, max_iter, tick, history, floor)
             iterations += k
-            H = lifted_information(_weighted(B, jnp.asarray(_TIGHT, wc.dtype)), p_free,
-                                   self.s0_free)
+            cov = lifted_covariance(B, p_free, self.s0_free)
+            fixed = ~jnp.concatenate([p_free, self.s0_free])
+            H = jnp.where(fixed[:, None] | fixed[None, :], 0.0,
+                          jnp.linalg.inv(cov + jnp.diag(fixed.astype(cov.dtype))))
         ss = np.asarray(jnp.sum(B["ss"], axis=0))
         series = self.series(problem, B["r"])  # (the data residuals at the last point)
         data_loss = 0.5 * float(ss.sum())
