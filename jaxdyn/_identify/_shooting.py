@@ -52,7 +52,7 @@ _CONTINUITY = 10.0  # weight of a continuity defect, relative to its segment's d
 _STAGES = (1e-2, 1.0)  # continuation: factors of the continuity weights
 _LIFTED_TOL = 1e-4  # relative tolerance of the lifted stages (the condensed steps finish)
 _INSIGNIFICANT = 1e-2  # a condensed step this many standard deviations long ends the fit
-_HOPELESS = 100.0  # a first condensed step this many standard deviations long is not tried
+_HOPELESS = 1e4  # a first condensed step this many standard deviations long is not tried
 _MEMORY = 2**28  # bytes of Jacobian blocks and saved tangents per chunk of segments
 _SEGMENT_STEPS = 20_000
 _CPU_BATCH = 8  # segments per batch of a linearisation on a CPU (see `chunk`)
@@ -534,6 +534,22 @@ class Shooting:
         z = jnp.concatenate([p, s[0]])
         return z[self.z_of_u].astype(u_like.dtype)
 
+    def integration_variance(self, problem) -> float:
+        """The variance of a weighted residual that the integration's error alone gives:
+        `rtol` times each output's size, over its `sigma`, averaged over the samples'
+        components."""
+        from ._fit import _data_scale
+
+        valid = self.seg.weights > 0
+        total, count = 0.0, 0
+        for name, kind, sigma in zip(problem.outputs, problem.kinds, problem.sigma):
+            d = self.seg.data[name][valid]
+            floor = float(problem.rtol) * _data_scale(d, kind) / np.asarray(sigma, float)
+            width = int(np.prod(d.shape[1:])) if kind != "rotation" else 3
+            total += d.shape[0] * float(np.sum(np.broadcast_to(floor**2, (width,))))
+            count += d.shape[0] * width
+        return total / max(count, 1)
+
     def _levenberg_marquardt(self, problem, p, s, smaps, wc, B, p_free, tol, max_iter, tick,
                              history, floor=0.0):
         """Levenberg--Marquardt on the lifted problem; converged at a step or decrease below
@@ -614,7 +630,10 @@ class Shooting:
         closed = False
         dof = max(self.n_obs - int(np.sum(free)), 1)
         variance = lambda B: float(jnp.sum(B["ss"])) / dof  # noqa: E731 (of the residuals)
-        lifted_optimum, s2 = (p, s, B), variance(B)
+        # (On noise-free data the residuals are the integration's error: a standard
+        # deviation is never taken below what that error alone gives.)
+        lifted_optimum = (p, s, B)
+        s2 = max(variance(B), self.integration_variance(problem))
         previous = _HOPELESS**2 * s2
         for _ in range(8):
             dp, ds, metric = condensed_step(B, p_free, self.s0_free)
