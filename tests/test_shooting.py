@@ -176,3 +176,17 @@ def test_lifted_optimum_where_the_defects_cannot_close(monkeypatch):
         determined = sa > 1e-9 * np.abs(a)
         ratio = sb[determined] / sa[determined]
         assert np.all((ratio >= 1 - 1e-3) & (ratio <= 2)), (name, ratio)
+    # A closing step that lands at a wrong point (a linearisation without precision that
+    # claims to have converged) is refused: the data explain it far worse than the lifted
+    # optimum, and the fit is the lifted one.
+
+    def wrong(*args):
+        dp, ds, _ = step(*args)
+        return dp + 1e-2, ds, jnp.zeros(())  # (an insignificant step, it says)
+
+    monkeypatch.setattr(_shooting, "condensed_step", wrong)
+    refused = jd.fit(scene, ts, data, segments=4, **kwargs)
+    for name in ["inertia.principal_moments", "omega"]:
+        a, b = np.asarray(lifted.values[name]), np.asarray(refused.values[name])
+        assert np.allclose(a, b, rtol=1e-9, atol=1e-12), (name, a, b)
+        assert np.allclose(lifted.std[name], refused.std[name], rtol=1e-9, atol=0)
