@@ -190,3 +190,16 @@ def test_lifted_optimum_where_the_defects_cannot_close(monkeypatch):
         a, b = np.asarray(lifted.values[name]), np.asarray(refused.values[name])
         assert np.allclose(a, b, rtol=1e-9, atol=1e-12), (name, a, b)
         assert np.allclose(lifted.std[name], refused.std[name], rtol=1e-9, atol=0)
+
+
+def test_a_segment_that_cannot_be_integrated_is_named(monkeypatch):
+    """A segment whose integration fails from its starting state (here: a step budget of 3
+    steps per segment) stops the fit with an error naming the segment, its times and the
+    remedies, instead of a failed decomposition of non-finite blocks."""
+    ts = np.linspace(0.0, 16.0, 64)
+    moments, w, _, w0, _ = _attitude_record(ts)
+    scene = jd.Scene(jd.RigidBody(moments))
+    monkeypatch.setattr(_shooting, "_SEGMENT_STEPS", 3)
+    with pytest.raises(RuntimeError, match=r"segment 1 of 4 \(t = 0 to .*step budget \(3 steps"):
+        jd.fit(scene, ts, {"omega": w}, parameters={"inertia": jd.ValidInertia()},
+               initial=["omega"], segments=4, restarts=1, y0={"omega": jnp.asarray(w0)})

@@ -519,6 +519,18 @@ class Shooting:
             p, s, smaps = resume
         ones = jnp.ones(self.n_s, p.dtype)
         B = self._lin(problem, p, s, smaps, ones)
+        # A segment whose integration fails from its starting state has no residuals: no
+        # step of the lifted problem can start (and its weights are undefined).
+        bad = ~(np.all(np.isfinite(np.asarray(B["r"])), axis=1)
+                & np.all(np.isfinite(np.asarray(B["d"])), axis=1))
+        if bad.any():
+            k = int(np.argmax(bad))
+            raise RuntimeError(
+                f"multiple shooting: the integration of segment {k + 1} of {self.segments} "
+                f"(t = {self.seg.ts[k, 0]:g} to {self.seg.ts[k, -1]:g}; {int(bad.sum())} "
+                f"segments in all) failed from its starting state: its step budget "
+                f"({self.max_steps} steps per segment) ran out or its state left the finite "
+                f"numbers; loosen rtol, or fit fewer samples")
         wc = jnp.asarray(continuity_weights(B, self.lay), p.dtype)
         return p, s, smaps, wc, _weighted(B, wc)
 
