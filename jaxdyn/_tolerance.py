@@ -110,7 +110,10 @@ class ScaledPIDController(dfx.AbstractAdaptiveStepSizeController):
         ts = to_t(t_start)
         i = jnp.searchsorted(J, ts, side="right", method="scan_unrolled")  # the next jump
         j, m, has = next_jump(i)
-        bump = has & (ts >= j - 2 * m)  # (2: the end of a clipped step, after rounding)
+        # (2: the end of a clipped step, after rounding. A jump within two gaps of the run's
+        # end is neither stepped to nor over: a start moved past the end would leave a step
+        # of negative length, rejected until the step budget runs out.)
+        bump = has & (ts >= j - 2 * m) & (j + 2 * m < to_t(t_stop))
         ts_new = jnp.where(bump, j + m, ts)
         j, m, has = next_jump(jnp.where(bump, i + 1, i))
         te = to_t(t_end) + (ts_new - ts)

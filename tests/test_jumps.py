@@ -90,3 +90,27 @@ def test_repeated_commands_are_dropped_and_bad_times_still_refused():
     assert np.asarray(held.times).tolist() == [0.0, 2.0]
     with pytest.raises(jd.ParameterError, match="commanded_torques.times"):
         jd.CommandedTorques([0.0, 2.0, 1.0], np.zeros((3, 3)))
+
+
+def test_a_jump_at_the_runs_end_moves_no_step_past_it():
+    """A step that starts just before a jump (within the gap `underflow_step`) restarts just
+    after it, except at the run's end: a segment of a fit can end exactly at a command time,
+    and a start moved past the end left a step of negative length, rejected until the step
+    budget ran out (the 3e5-sample wheel record at rtol 1e-10, a segment ending at 20000 s)."""
+    from jaxdyn._tolerance import ScaledPIDController, underflow_step
+
+    sc = scene()
+    y0 = sc.state(omega=W0, **{"wheels.speed": SPEED0})
+    t1 = float(TIMES[-1])  # (a command time)
+    ctrl = ScaledPIDController(rtol=1e-10, atol=0.0).bind(sc, jnp.asarray(0.0),
+                                                           jnp.asarray(t1), y0)
+    for j, t_stop, moved in [(15.0, t1, True), (t1, t1, False)]:
+        m = float(underflow_step(jnp.asarray(j), ctrl.time_scale,
+                                 jnp.finfo(jnp.float64).eps))
+        start = jnp.asarray(j - 0.5 * m)
+        t_start, t_end, bump = ctrl._at_jumps(start, jnp.asarray(j + 1.0), jnp.asarray(t_stop))
+        assert bool(bump) == moved
+        if moved:
+            assert float(t_start) > j and float(t_end) > float(t_start)
+        else:
+            assert float(t_start) == float(start) and float(t_start) < t_stop

@@ -524,13 +524,14 @@ class Shooting:
         bad = ~(np.all(np.isfinite(np.asarray(B["r"])), axis=1)
                 & np.all(np.isfinite(np.asarray(B["d"])), axis=1))
         if bad.any():
-            k = int(np.argmax(bad))
+            k, n = int(np.argmax(bad)), int(bad.sum())
+            others = f" and {n - 1} other segment{'s' if n > 2 else ''}" if n > 1 else ""
             raise RuntimeError(
                 f"multiple shooting: the integration of segment {k + 1} of {self.segments} "
-                f"(t = {self.seg.ts[k, 0]:g} to {self.seg.ts[k, -1]:g}; {int(bad.sum())} "
-                f"segments in all) failed from its starting state: its step budget "
-                f"({self.max_steps} steps per segment) ran out or its state left the finite "
-                f"numbers; loosen rtol, or fit fewer samples")
+                f"(t = {self.seg.ts[k, 0]:g} to {self.seg.ts[k, -1]:g}){others} failed from "
+                f"its starting state: its step budget ({self.max_steps} steps per segment) "
+                f"ran out or its state left the finite numbers; loosen rtol, or fit fewer "
+                f"samples")
         wc = jnp.asarray(continuity_weights(B, self.lay), p.dtype)
         return p, s, smaps, wc, _weighted(B, wc)
 
