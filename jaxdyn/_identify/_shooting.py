@@ -280,23 +280,30 @@ def _block_tridiagonal_solve(D, C, R):
     return X
 
 
+def _bordered_solve(Hpp, Hps, D, C, bp, bs):
+    """Solve the lifted normal equations `[[Hpp, Hps], [Hps^T, T]] [xp; xs] = [bp; bs]` (`T`
+    block tridiagonal: diagonal blocks `D`, upper blocks `C`) for `m` right-hand sides, `bp`
+    `(n_p, m)` and `bs` `(S, n_s, m)`: the block Thomas recursion for `T`, and the Schur
+    complement on `p`."""
+    n_p = Hpp.shape[0]
+    Y = _block_tridiagonal_solve(D, C, jnp.concatenate([jnp.swapaxes(Hps, 1, 2), bs], axis=2))
+    Yp, Yb = Y[:, :, :n_p], Y[:, :, n_p:]
+    schur = Hpp - jnp.einsum("kps,ksq->pq", Hps, Yp)
+    xp = jnp.linalg.solve(schur, bp - jnp.einsum("kps,ksm->pm", Hps, Yb))
+    return xp, Yb - jnp.einsum("ksp,pm->ksm", Yp, xp)
+
+
 @jax.jit
 def lm_step(B, lam, p_free, s0_free):
     """A Levenberg--Marquardt step of the lifted problem (damping `lam` times the diagonal),
     and the reduction of the loss `0.5 |r|^2` that its linear model predicts."""
     Hpp, Hps, D, C, gp, gs = _normal_blocks(B, p_free, s0_free)
-    n_p = Hpp.shape[0]
     diag_p, diag_s = jnp.diag(Hpp), jax.vmap(jnp.diag)(D)
     floor = 1e-12 * jnp.maximum(jnp.max(diag_p), jnp.max(diag_s))
     damp_p, damp_s = lam * jnp.maximum(diag_p, floor), lam * jnp.maximum(diag_s, floor)
-    Hpp_d = Hpp + jnp.diag(damp_p)
-    D_d = D + jax.vmap(jnp.diag)(damp_s)
-    R = jnp.concatenate([jnp.swapaxes(Hps, 1, 2), gs[:, :, None]], axis=2)
-    Y = _block_tridiagonal_solve(D_d, C, R)
-    schur = Hpp_d - jnp.einsum("kps,ksq->pq", Hps, Y[:, :, :n_p])
-    rhs = gp - jnp.einsum("kps,ks->p", Hps, Y[:, :, n_p])
-    dp = -jnp.linalg.solve(schur, rhs)
-    ds = -(Y[:, :, n_p] + jnp.einsum("ksp,p->ks", Y[:, :, :n_p], dp))
+    xp, xs = _bordered_solve(Hpp + jnp.diag(damp_p), Hps, D + jax.vmap(jnp.diag)(damp_s), C,
+                             gp[:, None], gs[:, :, None])
+    dp, ds = -xp[:, 0], -xs[:, :, 0]
     g_dot = gp @ dp + jnp.sum(gs * ds)
     damped = jnp.sum(damp_p * dp**2) + jnp.sum(damp_s * ds**2)
     return dp, ds, 0.5 * (damped - g_dot)
@@ -354,11 +361,7 @@ def lifted_covariance(B, p_free, s0_free):
     # Right-hand sides e_z: unit vectors of p, and of s_0 (in the first segment's rows).
     bp = jnp.eye(n_p, n_z, dtype=D.dtype)
     bs = jnp.zeros((S, n_s, n_z), D.dtype).at[0].set(jnp.eye(n_s, n_z, n_p, dtype=D.dtype))
-    Y = _block_tridiagonal_solve(D, C, jnp.concatenate([jnp.swapaxes(Hps, 1, 2), bs], axis=2))
-    Ysp, Ysb = Y[:, :, :n_p], Y[:, :, n_p:]
-    schur = Hpp - jnp.einsum("kps,ksq->pq", Hps, Ysp)
-    xp = jnp.linalg.solve(schur, bp - jnp.einsum("kps,ksz->pz", Hps, Ysb))
-    xs = Ysb - jnp.einsum("ksp,pz->ksz", Ysp, xp)
+    xp, xs = _bordered_solve(Hpp, Hps, D, C, bp, bs)
     X = jnp.concatenate([jnp.broadcast_to(xp, (S, n_p, n_z)), xs], axis=1)  # H^-1 e_z by segment
     fp = p_free.astype(N.dtype)
     fs = jnp.ones((S, n_s), N.dtype).at[0].set(s0_free.astype(N.dtype))
