@@ -101,6 +101,34 @@ def test_lifted_covariance_is_the_sandwich_of_a_dense_solve():
     assert np.linalg.eigvalsh(gap).min() > -1e-12 * ev.max()
 
 
+def test_identifiable_where_the_dynamics_amplify_a_perturbation():
+    """A component seen directly by every segment's data (a gyro bias: `p_0`) or not
+    amplified by the dynamics (an attitude: `s_0[1]`) is identifiable beside components
+    whose condensed columns an unstable state amplifies 1e3-fold per segment (`p_1` feeds
+    it, `s_0[0]` is it); a component that neither the data nor the dynamics see (`p_2`) is
+    not. Condensed columns alone, against the largest, held `p_0` and `s_0[1]` fixed."""
+    rng = np.random.default_rng(7)
+    S, m, n_p, n_s = 8, 12, 3, 2
+    A = rng.normal(size=(S, m, n_p + n_s))
+    A[:, :, 0] = 1.0  # the bias adds to every sample
+    A[:, :, 2] = 0.0  # seen by nothing
+    P = np.zeros((S, n_s, n_p))
+    P[:, 0, 1] = 1.0  # p_1 drives the unstable state
+    G = np.broadcast_to(np.diag([1e3, 1.0]), (S, n_s, n_s)).copy()
+    E = np.broadcast_to(-np.eye(n_s), (S, n_s, n_s)).copy()
+    blocks = {"N": np.einsum("kij,kil->kjl", A, A), "g": np.zeros((S, n_p + n_s)),
+              "P": P, "G": G, "E": E, "d": np.zeros((S, n_s))}
+    for k in ("P", "G", "E"):
+        blocks[k][-1] = 0.0
+    blocks = jax.tree.map(jnp.asarray, blocks)
+    s0_free = jnp.asarray([True, True])
+    got = _shooting.identifiable(blocks, s0_free, 1e-6)
+    assert got.tolist() == [True, True, False, True, True]
+    H, *_ = _shooting.condense(blocks, jnp.ones(n_p, bool), s0_free)
+    condensed = np.sqrt(np.diag(np.asarray(H)))
+    assert (condensed > 1e-6 * condensed.max()).tolist() == [False, True, False, True, False]
+
+
 def _same_estimate(single, multiple, names):
     for name in names:
         a, b = np.asarray(single.values[name]), np.asarray(multiple.values[name])

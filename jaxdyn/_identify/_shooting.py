@@ -339,6 +339,28 @@ def condense(B, p_free, s0_free):
     return H, jnp.where(free, grad, 0.0), a, Psi
 
 
+def identifiable(B, s0_free, tol) -> np.ndarray:
+    """Components of `z = (p, s_0)` that the data depend on: a column of the condensed
+    (single-shooting) Jacobian, or of the segments' own data Jacobians, above `tol` times the
+    largest column of the same kind. (Where the dynamics amplify a perturbation over the
+    record, the condensed columns of the components that feed the instability grow by as much:
+    on issue 20's 3e5-sample wheel record, beside them the gyro bias and the initial attitude,
+    seen directly by every segment's data, looked like zero columns and were held at their
+    starting values. The segments' own columns are not propagated across segments.)"""
+    n_p = B["P"].shape[2]
+    H, *_ = condense(B, jnp.ones(n_p, bool), s0_free)
+    N = np.asarray(B["N"])
+    data = np.concatenate([np.diag(N[:, :n_p, :n_p].sum(axis=0)),
+                           np.diag(N[0, n_p:, n_p:]) * np.asarray(s0_free)])
+
+    def above(squares):
+        norms = np.sqrt(np.maximum(np.nan_to_num(squares, nan=0.0, posinf=np.inf), 0.0))
+        top = norms.max()
+        return norms > tol * top if np.isfinite(top) else np.isposinf(norms)
+
+    return above(np.diag(np.asarray(H))) | above(data)
+
+
 @jax.jit
 def lifted_covariance(B, p_free, s0_free):
     """The covariance of `z = (p, s_0)` at the lifted optimum, over the residual variance:
@@ -539,12 +561,9 @@ class Shooting:
         return p, s, smaps, wc, _weighted(B, wc)
 
     def free(self, problem, u, tol):
-        """Components of `u` that the data determine (a nonzero column of the condensed
-        Jacobian at the start)."""
+        """Components of `u` that the data determine (see `identifiable`), at the start."""
         _, _, _, _, B = self.start(problem, u)
-        H, *_ = condense(B, jnp.ones(self.n_p, bool), self.s0_free)
-        norms = np.sqrt(np.maximum(np.diag(np.asarray(H)), 0.0))[self.z_of_u]
-        return norms > tol * norms.max()
+        return identifiable(B, self.s0_free, tol)[self.z_of_u]
 
     def u_of(self, p, s, u_like):
         z = jnp.concatenate([p, s[0]])
