@@ -935,7 +935,10 @@ def fit(
     - `rtol`, `atol`, `max_steps`: of the integration ([`jaxdyn.simulate`][]).
     - `identifiability_tol`: a component whose Jacobian column, at the starting point, is
       smaller than this times the largest column is reported as not identifiable and kept at
-      its starting value (default `1e-6` in float64, `1e-3` in float32). At the optimum, a
+      its starting value (default `1e-6` in float64, `1e-3` in float32; under multiple
+      shooting, a component above it in the single-shooting columns or in the segments' own
+      columns is identifiable: over a long record whose dynamics amplify a perturbation, the
+      single-shooting columns of the amplified components dwarf the others). At the optimum, a
       singular value of the column-scaled Jacobian below this times the largest is reported
       as a combination of components that the data do not determine (say `g` and `L` of the
       rod, of which only `g/L` enters).
