@@ -1249,8 +1249,10 @@ def fit(
     if n_free and sv[n_free - 1] < identifiability_tol * sv[0]:
         v = vt[n_free - 1]
         involved = [c for c, x in zip(components, v) if abs(x) > 0.1]
+        # (A singular value of exactly zero: an infinite condition number, said so.)
+        cond = (f"{sv[0] / sv[n_free - 1]:.1e}" if sv[n_free - 1] > 0 else "infinite")
         lines.append(f"only a combination of {', '.join(involved)} is determined by the data "
-                     f"(condition number {sv[0] / sv[n_free - 1]:.1e})")
+                     f"(condition number {cond})")
     if systematic:
         lines.append(_systematic_note(systematic, whiteness, n_samples=ts.size))
     scene_fit, y0_fit = _scene_and_state(problem, u)
