@@ -199,8 +199,9 @@ def test_lifted_optimum_where_the_defects_cannot_close(monkeypatch):
     for name in ["inertia.principal_moments", "omega"]:
         a, b = np.asarray(single.values[name]), np.asarray(lifted.values[name])
         sa, sb = np.asarray(single.std[name]), np.asarray(lifted.std[name])
-        assert np.all(np.abs(a - b) <= 0.05 * sa), (name, (a - b) / sa)
-        # (The largest normalised moment is 1 by definition: no interval to compare.)
+        # (The largest normalised moment is 1 by definition: no interval to compare, and the
+        # two estimates agree to round-off.)
+        assert np.all(np.abs(a - b) <= 0.05 * sa + 1e-14 * np.abs(a)), (name, (a - b) / sa)
         determined = sa > 1e-9 * np.abs(a)
         ratio = sb[determined] / sa[determined]
         assert np.all((ratio >= 1 - 1e-3) & (ratio <= 2)), (name, ratio)
