@@ -164,7 +164,7 @@ def test_noise_free_fit_of_a_flat_plate_converges_in_a_few_steps():
     physical bodies: a noise-free fit ends there. With the plate at a finite point of the
     shape coordinates the best start converges in 12 Levenberg-Marquardt iterations (98 with
     the logits used before, crawling towards the plate at infinity; over both starts of
-    `jaxdyn fit` on the same record, 28 and 569), to the moments within 1e-8."""
+    `jaxdyn fit` on the same record, 40 and 936), to the moments within 1e-8."""
     tensor = np.diag([1.0, 2.0, 3.0])
     ts = np.linspace(0.0, 20.0, 201)
     data = euler_rates(tensor, np.array([0.3, 1.0, 0.2]), ts)

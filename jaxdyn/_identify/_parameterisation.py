@@ -185,7 +185,7 @@ class ValidInertia(AbstractParameterisation):
     $y$ or $z$ zero: one moment the sum of the other two): a fit whose optimum is a plate,
     such as the lecture's 1 : 2 : 3 body, reaches it in a few Gauss--Newton steps. (With
     logits, $(x, y, z) \propto \mathrm{softmax}(a, b, 0)$, this class's earlier map, a plate
-    lay at infinity: a noise-free fit of that body took 569
+    lay at infinity: `jaxdyn fit` of 201 noise-free samples of that body took 936
     Levenberg--Marquardt iterations over its two starts, 40 with the folds.)
 
     Torque-free rates do not change when the tensor is multiplied by a constant, so there the
