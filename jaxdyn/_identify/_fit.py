@@ -682,6 +682,18 @@ def _starting_point(maps, starting, names):
                             for n, m in zip(names, maps)]).astype(jnp.result_type(float))
 
 
+@stored_filter_jit
+def _restart_points(problem, u0, free, key, *, count):
+    """`count` random starting points (each parameterisation's `restart`), in one program."""
+    points = []
+    for k in jax.random.split(key, count):
+        keys = jax.random.split(k, len(problem.maps))
+        u = jnp.concatenate([m.restart(kk, part) for m, kk, part in
+                             zip(problem.maps, keys, problem.split(u0))]).astype(u0.dtype)
+        points.append(jnp.where(free, u, u0))
+    return jnp.stack(points)
+
+
 @eqx.filter_jit
 def _scene_and_state(problem, u):
     return problem.scene_and_state(u)
@@ -1024,7 +1036,7 @@ def fit(
     if horizons is None:
         horizons = (1.0,) if shooting is not None else _auto_horizons(clock, ts)
     ts_p, obs_p, weights = setup.ts_p, setup.obs_p, setup.weights
-    maps, components, n_obs, dtype = problem.maps, setup.components, setup.n_obs, setup.dtype
+    components, n_obs, dtype = setup.components, setup.n_obs, setup.dtype
     outputs = problem.outputs
     eps = float(jnp.finfo(dtype).eps)
     if tol is None:
@@ -1043,11 +1055,8 @@ def fit(
 
     key = _as_key(key)
     starts = [u0]
-    for k in jax.random.split(key, restarts - 1) if restarts > 1 else []:
-        keys = jax.random.split(k, len(maps))
-        u = jnp.concatenate([m.restart(kk, part) for m, kk, part in
-                             zip(maps, keys, problem.split(u0))]).astype(u0.dtype)
-        starts.append(jnp.where(free, u, u0))
+    if restarts > 1:
+        starts += list(np.asarray(_restart_points(problem, u0, free, key, count=restarts - 1)))
 
     polish = _levenberg_marquardt if method == "lm" else _lbfgs
     tol_a = jnp.asarray(tol, u0.dtype)

@@ -250,7 +250,9 @@ class ValidInertia(AbstractParameterisation):
 
     def restart(self, key, u):
         k1, k2 = jax.random.split(key)
-        x, y, z = jax.random.dirichlet(k1, jnp.ones(3, u.dtype))  # uniform over the shapes
+        # Uniform over the triangle of shapes: the gaps between two sorted uniform numbers.
+        lo, hi = jnp.sort(jax.random.uniform(k1, (2,), u.dtype))
+        x, y, z = lo, hi - lo, 1 - hi
         shape = jnp.where(self.spread > 0, jnp.stack([x, y / (y + z)]), u[1:3])
         q = quat_normalize(jax.random.normal(k2, (4,), u.dtype))  # uniform over rotations
         return jnp.concatenate([u[:1], shape, mrp_from_quat(q)])
