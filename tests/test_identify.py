@@ -132,30 +132,32 @@ def test_valid_inertia_reaches_a_flat_plate_at_a_finite_point():
     coordinate that crosses the plate stays as large as inside (the logits used before had
     the plate at infinity, with a column vanishing as it approached)."""
     m = jd.ValidInertia()
+    moments = jax.jit(m.moments)
+    jacobian = jax.jit(jax.jacfwd(m.moments))
     # The plate z = 0 (I3 = I1 + I2) is the fold b = 1, the plate x = 0 the fold a = 0.
     for c, k in ((np.array([0.0, 0.4, 1.0, 0, 0, 0]), 2), (np.array([0.0, 0.0, 0.3, 0, 0, 0]), 1)):
-        mom = np.asarray(m.moments(jnp.asarray(c)))
+        mom = np.asarray(moments(jnp.asarray(c)))
         plate = np.sort(mom)
         assert abs(plate[2] - plate[0] - plate[1]) < 1e-15, mom
         columns = []
         for side in (-1e-3, 1e-3):
             e = np.zeros(6)
             e[k] = side
-            mom_side = np.asarray(m.moments(jnp.asarray(c + e)))
+            mom_side = np.asarray(moments(jnp.asarray(c + e)))
             # Reflected: both sides are the same body, a little inside the plate.
             s = np.sort(mom_side)
             assert s[0] + s[1] - s[2] > 0.9e-3, mom_side
-            columns.append(np.abs(np.asarray(jax.jacfwd(m.moments)(jnp.asarray(c + e)))[:, k]))
-        inside = np.abs(np.asarray(jax.jacfwd(m.moments)(jnp.asarray(c + 0.3 * np.eye(6)[k]
-                                                                     * np.sign(0.5 - c[k]))))[:, k])
+            columns.append(np.abs(np.asarray(jacobian(jnp.asarray(c + e)))[:, k]))
+        inside = np.abs(np.asarray(jacobian(jnp.asarray(c + 0.3 * np.eye(6)[k]
+                                                        * np.sign(0.5 - c[k]))))[:, k])
         assert np.allclose(columns[0], columns[1]) and np.max(columns[0]) > 0.5 * np.max(inside)
     # Restarts draw physical shapes, or keep the start's with spread 0.
     u = m.to_unconstrained(jnp.array([1.0, 2.0, 2.5]))
     keys = jax.random.split(jax.random.PRNGKey(0), 200)
-    drawn = np.asarray(jax.vmap(lambda k: m.moments(m.restart(k, u)))(keys))
+    drawn = np.asarray(jax.jit(jax.vmap(lambda k: m.moments(m.restart(k, u))))(keys))
     s = np.sort(drawn, axis=1)
     assert np.all(s[:, 0] > 0) and np.all(s[:, 2] <= s[:, 0] + s[:, 1])
-    kept = jax.vmap(lambda k: jd.ValidInertia(spread=0.0).restart(k, u))(keys[:5])
+    kept = jax.jit(jax.vmap(lambda k: jd.ValidInertia(spread=0.0).restart(k, u)))(keys[:5])
     assert np.allclose(np.asarray(kept)[:, :3], np.asarray(u)[:3])
 
 
