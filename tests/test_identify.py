@@ -126,58 +126,6 @@ def test_valid_inertia_round_trip():
                            atol=10 * tol(ROUNDOFF))
 
 
-def test_valid_inertia_reaches_a_flat_plate_at_a_finite_point():
-    """The shape coordinates are linear up to their folds, which are the flat plates: the
-    moments there are the limit from either side, and the Jacobian column of the shape
-    coordinate that crosses the plate stays as large as inside (the logits used before had
-    the plate at infinity, with a column vanishing as it approached)."""
-    m = jd.ValidInertia()
-    moments = jax.jit(m.moments)
-    jacobian = jax.jit(jax.jacfwd(m.moments))
-    # The plate z = 0 (I3 = I1 + I2) is the fold b = 1, the plate x = 0 the fold a = 0.
-    for c, k in ((np.array([0.0, 0.4, 1.0, 0, 0, 0]), 2), (np.array([0.0, 0.0, 0.3, 0, 0, 0]), 1)):
-        mom = np.asarray(moments(jnp.asarray(c)))
-        plate = np.sort(mom)
-        assert abs(plate[2] - plate[0] - plate[1]) < 1e-15, mom
-        columns = []
-        for side in (-1e-3, 1e-3):
-            e = np.zeros(6)
-            e[k] = side
-            mom_side = np.asarray(moments(jnp.asarray(c + e)))
-            # Reflected: both sides are the same body, a little inside the plate.
-            s = np.sort(mom_side)
-            assert s[0] + s[1] - s[2] > 0.9e-3, mom_side
-            columns.append(np.abs(np.asarray(jacobian(jnp.asarray(c + e)))[:, k]))
-        inside = np.abs(np.asarray(jacobian(jnp.asarray(c + 0.3 * np.eye(6)[k]
-                                                        * np.sign(0.5 - c[k]))))[:, k])
-        assert np.allclose(columns[0], columns[1]) and np.max(columns[0]) > 0.5 * np.max(inside)
-    # Restarts draw physical shapes, or keep the start's with spread 0.
-    u = m.to_unconstrained(jnp.array([1.0, 2.0, 2.5]))
-    keys = jax.random.split(jax.random.PRNGKey(0), 200)
-    drawn = np.asarray(jax.jit(jax.vmap(lambda k: m.moments(m.restart(k, u))))(keys))
-    s = np.sort(drawn, axis=1)
-    assert np.all(s[:, 0] > 0) and np.all(s[:, 2] <= s[:, 0] + s[:, 1])
-    kept = jax.jit(jax.vmap(lambda k: jd.ValidInertia(spread=0.0).restart(k, u)))(keys[:5])
-    assert np.allclose(np.asarray(kept)[:, :3], np.asarray(u)[:3])
-
-
-def test_noise_free_fit_of_a_flat_plate_converges_in_a_few_steps():
-    """The lecture's 1 : 2 : 3 body is a flat plate (I3 = I1 + I2), on the boundary of the
-    physical bodies: a noise-free fit ends there. With the plate at a finite point of the
-    shape coordinates the best start converges in 12 Levenberg-Marquardt iterations (98 with
-    the logits used before, crawling towards the plate at infinity; over both starts of
-    `jaxdyn fit` on the same record, 40 and 936), to the moments within 1e-8."""
-    tensor = np.diag([1.0, 2.0, 3.0])
-    ts = np.linspace(0.0, 20.0, 201)
-    data = euler_rates(tensor, np.array([0.3, 1.0, 0.2]), ts)
-    res = jd.fit(jd.Scene(jd.RigidBody(jnp.diag(jnp.array([2.0, 2.0, 2.0])))), ts,
-                 {"omega": data}, **FIT_BODY, y0={"omega": jnp.asarray(data[0])})
-    moments = np.asarray(res.values["inertia.principal_moments"])
-    assert res.converged
-    assert np.max(np.abs(moments - np.array([1, 2, 3]) / 3)) < 1e-8, moments
-    assert res.iterations < 40, res.iterations
-
-
 def test_jacobian_against_finite_differences():
     """The fitter's Jacobian (forward mode through the integrator) against central
     differences of its residuals, integrated tightly so that the differences are accurate."""
