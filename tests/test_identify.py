@@ -663,3 +663,25 @@ def test_bad_arguments():
                initial=["theta", "theta_dot"], sigma=None)
     with pytest.raises(jd.ParameterError, match="method='newton'"):
         jd.fit(scene, ts, data, parameters={"length": jd.Positive()}, method="newton")
+
+
+class _NumpyRestart(jd.Unconstrained):
+    """A user's parameterisation whose `restart` works on NumPy values (not traceable)."""
+
+    def restart(self, key, u):
+        return jnp.asarray(np.asarray(u) * (1.0 + 1e-3 * float(jax.random.normal(key))))
+
+
+def test_a_restart_that_cannot_be_traced_is_drawn_eagerly():
+    rng = np.random.default_rng(7707)
+    tensor, w0 = random_body(rng)
+    ts = np.linspace(0.0, 6.0, SAMPLES)
+    data = euler_rates(tensor, w0, ts) + 1e-3 * rng.normal(size=(SAMPLES, 3))
+    scene = jd.Scene(jd.RigidBody(tensor))
+    kwargs = dict(parameters={"inertia": jd.ValidInertia()}, restarts=2, key=0)
+    plain = jd.fit(scene, ts, {"omega": data}, initial=["omega"], **kwargs)
+    own = jd.fit(scene, ts, {"omega": data}, initial={"omega": _NumpyRestart()}, **kwargs)
+    assert own.converged and own.restart_losses.size == 2
+    a, b = (np.asarray(r.values["inertia.principal_moments"]) for r in (plain, own))
+    sd = np.max(np.asarray(plain.std["inertia.principal_moments"]))
+    assert np.allclose(a, b, atol=1e-3 * sd), (a, b)

@@ -682,9 +682,8 @@ def _starting_point(maps, starting, names):
                             for n, m in zip(names, maps)]).astype(jnp.result_type(float))
 
 
-@stored_filter_jit
-def _restart_points(problem, u0, free, key, *, count):
-    """`count` random starting points (each parameterisation's `restart`), in one program."""
+def _draw_restarts(problem, u0, free, key, *, count):
+    """`count` random starting points (each parameterisation's `restart`)."""
     points = []
     for k in jax.random.split(key, count):
         keys = jax.random.split(k, len(problem.maps))
@@ -692,6 +691,13 @@ def _restart_points(problem, u0, free, key, *, count):
                              zip(problem.maps, keys, problem.split(u0))]).astype(u0.dtype)
         points.append(jnp.where(free, u, u0))
     return jnp.stack(points)
+
+
+# In one program: drawn eagerly, they were about 30 operations, each lowered and looked up in
+# the compilation cache on every run (0.1-0.2 s of a warm `jaxdyn fit`).
+_restart_points = stored_filter_jit(_draw_restarts)
+_UNTRACEABLE = (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError,
+                jax.errors.TracerIntegerConversionError)
 
 
 @eqx.filter_jit
@@ -1056,7 +1062,11 @@ def fit(
     key = _as_key(key)
     starts = [u0]
     if restarts > 1:
-        starts += list(np.asarray(_restart_points(problem, u0, free, key, count=restarts - 1)))
+        try:
+            drawn = _restart_points(problem, u0, free, key, count=restarts - 1)
+        except _UNTRACEABLE:  # a user's `restart` with NumPy or Python logic: drawn eagerly
+            drawn = _draw_restarts(problem, u0, free, key, count=restarts - 1)
+        starts += list(np.asarray(drawn))
 
     polish = _levenberg_marquardt if method == "lm" else _lbfgs
     tol_a = jnp.asarray(tol, u0.dtype)

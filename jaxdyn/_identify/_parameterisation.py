@@ -60,7 +60,9 @@ class AbstractParameterisation(eqx.Module):
         """A random starting point for a restart, given the first starting point `u`.
 
         The default keeps `u` (for quantities that the data pin down well, such as an initial
-        state read off the first sample).
+        state read off the first sample). The fitter draws all restarts in one compiled
+        program; a `restart` that cannot be traced (NumPy or Python logic on the values of
+        `u`) is called eagerly instead.
         """
         return u
 
