@@ -3,7 +3,7 @@
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ._validation import Check
+from ._validation import Check, on_host
 
 
 def principal_axes(
@@ -45,11 +45,12 @@ def moments_checks(field: str, moments: Float[Array, "3"]) -> list[Check]:
     The triangle inequality `I_i <= I_j + I_k` is allowed to hold with equality (a flat plate),
     up to a relative round-off of `8 eps`.
     """
-    eps = jnp.finfo(moments.dtype).eps
-    total = jnp.sum(moments)
-    triangle = moments > (total - moments) * (1 + 8 * eps)
+    xp, m = on_host(moments)
+    eps = xp.finfo(m.dtype).eps
+    total = xp.sum(m)
+    triangle = m > (total - m) * (1 + 8 * eps)
     return [
-        (field, moments, ~(jnp.isfinite(moments) & (moments > 0)),
+        (field, moments, ~(xp.isfinite(m) & (m > 0)),
          "principal moments of inertia must be positive and finite"),
         (field, moments, triangle,
          "each principal moment must not exceed the sum of the other two (triangle inequality)"),
@@ -58,16 +59,17 @@ def moments_checks(field: str, moments: Float[Array, "3"]) -> list[Check]:
 
 def tensor_checks(field: str, tensor: Float[Array, "3 3"]) -> list[Check]:
     """Checks for a full inertia tensor: finite, symmetric, then its principal moments."""
-    eps = jnp.finfo(tensor.dtype).eps
-    scale = jnp.max(jnp.abs(tensor))
-    asym = jnp.abs(tensor - tensor.T) > 1e3 * eps * scale
-    finite = jnp.isfinite(tensor)
+    xp, t = on_host(tensor)
+    eps = xp.finfo(t.dtype).eps
+    scale = xp.max(xp.abs(t))
+    asym = xp.abs(t - t.T) > 1e3 * eps * scale
+    finite = xp.isfinite(t)
     checks: list[Check] = [
         (field, tensor, ~finite, "inertia tensor entries must be finite"),
         (field, tensor, asym, "inertia tensor must be symmetric"),
     ]
-    safe = jnp.where(finite & ~asym, tensor, jnp.eye(3, dtype=tensor.dtype))
-    moments = jnp.linalg.eigvalsh(0.5 * (safe + safe.T))
+    safe = xp.where(finite & ~asym, t, xp.eye(3, dtype=t.dtype))
+    moments = xp.linalg.eigvalsh(0.5 * (safe + safe.T))
     return checks + moments_checks(field + " (principal moments)", moments)
 
 

@@ -19,7 +19,14 @@ from jaxtyping import Array, ArrayLike, Float
 from ._body import AbstractBody
 from ._custom_types import Scalar, State
 from ._inputs import Input
-from ._validation import Check, ParameterError, as_float_array, positive_check
+from ._validation import (
+    Check,
+    ParameterError,
+    as_float_array,
+    finite_check,
+    on_host,
+    positive_check,
+)
 
 # Gauss-Legendre nodes for the fall-time quadrature (three panels of 32 nodes; see `fall_time`).
 _GL_X, _GL_W = np.polynomial.legendre.leggauss(32)
@@ -39,10 +46,11 @@ def check_angle_rate(dtype, theta, theta_dot, names=("theta", "theta_dot"), shap
 
     theta = as_float_array(names[0], theta, shape, dtype)
     theta_dot = as_float_array(names[1], theta_dot, shape, dtype)
+    xp, th = on_host(theta)
     raise_if_violated([
-        (names[0], theta, ~(jnp.abs(theta) <= jnp.pi / 2),
+        (names[0], theta, ~(xp.abs(th) <= np.pi / 2),
          "must be finite and within [-pi/2, pi/2] (the rod cannot start below the floor)"),
-        (names[1], theta_dot, ~jnp.isfinite(theta_dot), "must be finite"),
+        finite_check(names[1], theta_dot),
     ])
     return theta, theta_dot
 

@@ -70,7 +70,7 @@ from ._body import AbstractBody
 from ._custom_types import Scalar, State
 from ._inputs import Input
 from ._rod import ROD_INPUTS, ROD_UNITS, check_angle_rate, rod_scales, rod_start
-from ._validation import Check, as_float_array, positive_check
+from ._validation import Check, as_float_array, on_host, positive_check
 
 STICK, SLIP, FLIGHT = 0.0, 1.0, 2.0
 # Value of an event that does not apply to the current mode.
@@ -139,13 +139,13 @@ class RoughFloorRod(AbstractBody):
         self.mu_k = as_float_array("mu_k", mu_k, (), dtype)
 
     def checks(self) -> list[Check]:
-        mu_s, mu_k = self.mu_s, self.mu_k
+        (xp, mu_s), (_, mu_k) = on_host(self.mu_s), on_host(self.mu_k)
         return [
             positive_check("length", self.length),
             positive_check("mass", self.mass),
             positive_check("g", self.g),
-            ("mu_s", mu_s, ~((mu_s >= 0) & jnp.isfinite(mu_s)), "must be finite and >= 0"),
-            ("mu_k", mu_k, ~((mu_k >= 0) & (mu_k <= mu_s) & jnp.isfinite(mu_k)),
+            ("mu_s", self.mu_s, ~((mu_s >= 0) & xp.isfinite(mu_s)), "must be finite and >= 0"),
+            ("mu_k", self.mu_k, ~((mu_k >= 0) & (mu_k <= mu_s) & xp.isfinite(mu_k)),
              "must be finite and within [0, mu_s] (kinetic friction cannot exceed static)"),
         ]
 

@@ -27,6 +27,7 @@ from ._tolerance import ScaledPIDController
 from ._validation import (
     ParameterError,
     as_float_array,
+    device_array,
     format_value,
     is_concrete,
     raise_if_violated,
@@ -60,7 +61,7 @@ def check_tolerances(rtol, atol, dtype) -> tuple:
                 f"rtol={float(rtol):g}: below what {name} can reach (eps = {eps:.2g}); "
                 f"use rtol within [{4 * eps:.2g}, 1){hint}"
             )
-    return jnp.asarray(rtol, dtype), jnp.asarray(atol, dtype)
+    return device_array(rtol, dtype), device_array(atol, dtype)
 
 
 def _prepare_run(scene, y0, t0, t1, ts, solver, rtol, atol, stepsize_controller, dt0,

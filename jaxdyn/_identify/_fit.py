@@ -275,7 +275,7 @@ class _LevenbergMarquardt(optx.AbstractGaussNewton):
     norm: Callable = optx.max_norm
     descent: optx.DampedNewtonDescent = optx.DampedNewtonDescent()
     search: optx.ClassicalTrustRegion = optx.ClassicalTrustRegion(
-        high_cutoff=0.5, low_cutoff=0.01, high_constant=4.0, low_constant=0.25
+        high_cutoff=0.75, low_cutoff=0.01, high_constant=3.0, low_constant=0.5
     )
     verbose: Callable = _silent
 
@@ -628,8 +628,9 @@ def _output_shapes(scene, dtype) -> dict[str, tuple[int, ...]]:
     leaves, treedef = jax.tree_util.tree_flatten(scene)
     key = (treedef, tuple(jnp.shape(x) for x in leaves), jnp.dtype(dtype))
     if key not in _SHAPES:
-        zeros = {k: jnp.zeros(shape, dtype) for k, shape in scene.state_shapes().items()}
-        shapes = jax.eval_shape(lambda: scene.outputs(jnp.zeros((), dtype), zeros))
+        state = {k: jax.ShapeDtypeStruct(shape, dtype)
+                 for k, shape in scene.state_shapes().items()}
+        shapes = jax.eval_shape(scene.outputs, jax.ShapeDtypeStruct((), dtype), state)
         _SHAPES[key] = {k: tuple(v.shape) for k, v in shapes.items()}
     return _SHAPES[key]
 
@@ -682,20 +683,30 @@ def _starting_point(maps, starting, names):
                             for n, m in zip(names, maps)]).astype(jnp.result_type(float))
 
 
+def _restart_point(problem, u0, free, key):
+    """One random starting point (each parameterisation's `restart`)."""
+    keys = jax.random.split(key, len(problem.maps))
+    u = jnp.concatenate([m.restart(k, part) for m, k, part in
+                         zip(problem.maps, keys, problem.split(u0))]).astype(u0.dtype)
+    return jnp.where(free, u, u0)
+
+
 def _draw_restarts(problem, u0, free, key, *, count):
-    """`count` random starting points (each parameterisation's `restart`)."""
-    points = []
-    for k in jax.random.split(key, count):
-        keys = jax.random.split(k, len(problem.maps))
-        u = jnp.concatenate([m.restart(kk, part) for m, kk, part in
-                             zip(problem.maps, keys, problem.split(u0))]).astype(u0.dtype)
-        points.append(jnp.where(free, u, u0))
-    return jnp.stack(points)
+    """`count` random starting points, drawn eagerly one by one (for a `restart` that cannot
+    be traced)."""
+    return jnp.stack([_restart_point(problem, u0, free, k)
+                      for k in jax.random.split(key, count)])
 
 
-# In one program: drawn eagerly, they were about 30 operations, each lowered and looked up in
-# the compilation cache on every run (0.1-0.2 s of a warm `jaxdyn fit`).
-_restart_points = stored_filter_jit(_draw_restarts)
+@stored_filter_jit
+def _restart_points(problem, u0, free, key, *, count):
+    """`count` random starting points, the same as `_draw_restarts`'s, in one program (drawn
+    eagerly, they are about 30 operations, each lowered and looked up in the compilation cache
+    on every run: 0.1-0.2 s of a warm `jaxdyn fit`), mapped over the keys (unrolled over
+    them, the program's random-number code grows with `count`: 290 kB, 0.3 s to load from the
+    cache)."""
+    return jax.vmap(lambda k: _restart_point(problem, u0, free, k))(
+        jax.random.split(key, count))
 _UNTRACEABLE = (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError,
                 jax.errors.TracerIntegerConversionError)
 
@@ -796,13 +807,13 @@ def _setup(scene, ts, data, parameters, initial, y0, sigma, rtol, atol, max_step
     problem = _Problem(
         scene=scene, y0=y0, names=names, is_state=tuple(n in initial for n in names),
         maps=maps, sizes=tuple(m.size() for m in maps), outputs=outputs, kinds=kinds,
-        sigma=tuple(jnp.asarray(sigmas[k] * scale, dtype) for k in outputs),
+        sigma=tuple(jax.device_put(np.asarray(sigmas[k] * scale, dtype)) for k in outputs),
         rtol=rtol, atol=atol, max_steps=max_steps,
         dtype=dtype,
     )
-    return _Setup(problem, u0, components, ts, obs, jnp.asarray(ts_p),
-                  {k: jnp.asarray(v) for k, v in obs_p.items()}, jnp.asarray(weights), n_obs,
-                  dtype, scale)
+    return _Setup(problem, u0, components, ts, obs, jax.device_put(ts_p),
+                  {k: jax.device_put(v) for k, v in obs_p.items()}, jax.device_put(weights),
+                  n_obs, dtype, scale)
 
 
 _TURNS = 10.0  # the first horizon of a long record, in natural time units (1/W)
@@ -832,10 +843,11 @@ def _natural_clock(problem, u0, ts, obs) -> np.ndarray:
     if names:
         idx = np.unique(np.linspace(0, ts.size - 1, min(ts.size, _CLOCK_POINTS + 1))
                         .round().astype(int))
-        measured = {k: jnp.asarray(obs[k][idx[:-1]], problem.dtype) for k in names}
+        measured = {k: jax.device_put(np.asarray(obs[k][idx[:-1]], problem.dtype))
+                    for k in names}
         dt = np.diff(ts[idx])
-        scales = np.asarray(_time_scales(scene, y0, jnp.asarray(ts[idx[:-1]]),
-                                         jnp.asarray(ts[idx[1:]]), measured), float)
+        scales = np.asarray(_time_scales(scene, y0, jax.device_put(ts[idx[:-1]]),
+                                         jax.device_put(ts[idx[1:]]), measured), float)
         ok = np.isfinite(scales) & (scales > 0)
         if np.all(ok):
             clock = np.concatenate([[0.0], np.cumsum(dt / scales)])
@@ -1057,7 +1069,20 @@ def fit(
         free_np = norms > identifiability_tol * norms.max()
     else:
         free_np = shooting.free(problem, u0, identifiability_tol)
-    free = jnp.asarray(free_np)
+    free = jax.device_put(free_np)
+    u0_np = np.asarray(u0)
+
+    def _fixed(u):
+        """`u` with the components not fitted back at their starting values (on the host: an
+        eager `jnp.where` is a compiled program)."""
+        return jax.device_put(np.where(free_np, np.asarray(u), u0_np))
+
+    def _clipped(ts_, weights_, t_h):
+        """Sample times clipped to `t_h` and weights zero beyond it (NumPy, on the host)."""
+        return (jax.device_put(np.minimum(ts_, t_h)),
+                jax.device_put(np.where(ts_ <= t_h, weights_, 0.0)))
+
+    ts_host, weights_host = np.asarray(ts_p), np.asarray(weights)
 
     key = _as_key(key)
     starts = [u0]
@@ -1082,8 +1107,7 @@ def fit(
         n_pre = max(int(np.searchsorted(ts, ts[0] + shooting.prefix, side="right")), 3)
         pre_ts, pre_obs, pre_w = _pad(np.asarray(ts[:n_pre]),
                                       {k: v[:n_pre] for k, v in obs.items()})
-        return (n_pre, jnp.asarray(pre_ts), {k: jnp.asarray(v) for k, v in pre_obs.items()},
-                jnp.asarray(pre_w))
+        return n_pre, pre_ts, {k: jax.device_put(v) for k, v in pre_obs.items()}, pre_w
 
     n_pre, pre_ts, pre_obs, pre_w = _prefix(shooting)
 
@@ -1093,7 +1117,7 @@ def fit(
         if adam_steps and warm_up:
             u, losses = _adam(problem, u, free, ts_p, obs_p, weights, lr, steps=adam_steps,
                               progress=progress)
-            u = jnp.where(free, u, u0)
+            u = _fixed(u)
             history.append(np.asarray(losses))
             stages.append(0)
             iterations += adam_steps
@@ -1101,11 +1125,11 @@ def fit(
             # Samples up to `t_h` count; the integration stops there too (later sample times
             # are clipped to it: same shapes, so no recompilation).
             t_h = ts[ts <= ts[0] + h * (ts[-1] - ts[0])][-1]
-            w = jnp.where(ts_p <= t_h, weights, 0.0)
+            ts_h, w = _clipped(ts_host, weights_host, t_h)
             stage_tol = tol_a if h == 1.0 else tol_early
-            u, loss, k, ok, hist = polish(problem, u, free, jnp.minimum(ts_p, t_h), obs_p, w,
+            u, loss, k, ok, hist = polish(problem, u, free, ts_h, obs_p, w,
                                           stage_tol, max_iter=max_iter, progress=progress)
-            u = jnp.where(free, u, u0)
+            u = _fixed(u)
             k = int(k)
             history.append(np.asarray(hist)[:k])
             stages.append(iterations)
@@ -1122,11 +1146,11 @@ def fit(
         if warm_up:
             for h in (0.25, 0.5, 1.0):
                 t_h = ts[:n_pre][ts[:n_pre] <= ts[0] + h * (ts[n_pre - 1] - ts[0])][-1]
-                w = jnp.where(pre_ts <= t_h, pre_w, 0.0)
-                u, _, k, _, hist = polish(problem, u, free, jnp.minimum(pre_ts, t_h),
+                ts_h, w = _clipped(pre_ts, pre_w, t_h)
+                u, _, k, _, hist = polish(problem, u, free, ts_h,
                                           pre_obs, w, tol_early, max_iter=max_iter,
                                           progress=progress)
-                u = jnp.where(free, u, u0)
+                u = _fixed(u)
                 history.append(np.asarray(hist)[:int(k)])
                 stages.append(iterations)
                 iterations += int(k)
@@ -1188,11 +1212,11 @@ def fit(
             the residuals of each output over the samples `(N, width)`."""
             if "H" in best:  # multiple shooting's own normal matrix
                 sums = dict(zip(outputs, (float(x) for x in best["ss"])))
-                return best["H"], jnp.asarray(sum(sums.values())), sums, best["series"]
-            r, J = _jacobian(problem, u, ts_p, obs_p, weights)
-            series = _series_by_output(np.asarray(r), obs, ts_p.size, problem.kinds)
+                return best["H"], np.sum(list(sums.values())), sums, best["series"]
+            r, J = (np.asarray(x) for x in _jacobian(problem, u, ts_p, obs_p, weights))
+            series = _series_by_output(r, obs, ts_p.size, problem.kinds)
             sums = {k: float(np.sum(v**2)) for k, v in series.items()}  # (padding weighs 0)
-            return J.T @ J, jnp.sum(r**2), sums, series
+            return J.T @ J, np.sum(r**2), sums, series
 
         H, rss, sums, series = normal_and_sums(best, u)
         if reweight and len(outputs) > 1:
@@ -1200,7 +1224,7 @@ def fit(
             # same compiled functions: `sigma` is an array of the problem).
             rms = _rms_by_output(sums, obs, problem.sigma, problem.kinds)
             problem = eqx.tree_at(lambda p: p.sigma, problem,
-                                  tuple(jnp.asarray(rms[k] * setup.scale, dtype)
+                                  tuple(jax.device_put(np.asarray(rms[k] * setup.scale, dtype))
                                         for k in outputs))
             # (Multiple shooting resumes from its segment states: re-anchored at the data, they
             # would start far from the optimum in the new weights.)
