@@ -114,10 +114,10 @@ def make_data(seed: int, samples: int, t1: float, noise: float):
 
 
 def scipy_model(v, ts, rtol, atol):
-    """Rates at `ts` for the unconstrained vector `v = (a, b, sigma, w0)` (normalised scale):
-    `jd.ValidInertia`'s map, written out in NumPy."""
-    sa, ca, sb, cb = np.sin(v[0]), np.cos(v[0]), np.sin(v[1]), np.cos(v[1])
-    x, y, z = sa**2, (ca * sb) ** 2, (ca * cb) ** 2
+    """Rates at `ts` for the unconstrained vector `v = (a, b, sigma, w0)` (normalised scale)."""
+    logits = np.array([v[0], v[1], 0.0])
+    p = np.exp(logits - logits.max())
+    x, y, z = p / p.sum()
     moments = np.array([y + z, x + z, x + y])
     axes = Rotation.from_mrp(v[2:5]).as_matrix()
     tensor = axes @ np.diag(moments) @ axes.T

@@ -224,10 +224,10 @@ class Scene(eqx.Module):
             out.update({f"{label}.{k}": v for k, v in e.outputs(t, y, own, self.body).items()})
         return out
 
-    def output_names(self) -> tuple[str, ...]:
+    def output_names(self, flat=None) -> tuple[str, ...]:
         """Names of the derived outputs (cached per scene structure: no tracing after the
-        first call)."""
-        leaves, treedef = jax.tree_util.tree_flatten(self)
+        first call). `flat`: the scene's `jax.tree_util.tree_flatten`, where the caller has it."""
+        leaves, treedef = flat if flat is not None else jax.tree_util.tree_flatten(self)
         key = ("outputs", treedef, tuple(getattr(x, "shape", None) for x in leaves))
         if key not in _SHAPES:
             y = self._example_state()

@@ -146,9 +146,11 @@ class Trajectory(eqx.Module):
     def __getattr__(self, name: str):
         if name.startswith("_"):
             raise AttributeError(name)
-        names = Scene.output_names(self.scene)  # (not a bound method: equinox wraps those)
+        scene = self.scene
+        flat = jax.tree_util.tree_flatten(scene)  # (once for both)
+        names = Scene.output_names(scene, flat)  # (not a bound method: equinox wraps those)
         if name in names:
-            return _outputs(self.scene, self.ts, self.ys)[name]
+            return _outputs(scene, self.ts, self.ys, flat)[name]
         raise AttributeError(
             f"Trajectory has no attribute {name!r}; derived outputs of this scene: {list(names)}"
         )
@@ -225,11 +227,11 @@ def _trajectory_program(name: str, fn, filtered, traj: Trajectory, *static):
     return _structure_program(name, treedef, static, build)(leaves)
 
 
-def _outputs(scene: Scene, ts, ys) -> dict[str, Array]:
+def _outputs(scene: Scene, ts, ys, flat=None) -> dict[str, Array]:
     """Every derived output at the times `ts`: one `jax.jit` program per scene structure,
     called with arrays only (equinox's filtered call where the scene holds Python functions
-    or the values are traced)."""
-    leaves, treedef = jax.tree_util.tree_flatten(scene)
+    or the values are traced). `flat`: the scene's `tree_flatten`, where the caller has it."""
+    leaves, treedef = flat if flat is not None else jax.tree_util.tree_flatten(scene)
     if not _concrete_arrays(*leaves):
         return _outputs_filtered(scene, ts, ys)
 

@@ -170,26 +170,16 @@ class ValidInertia(AbstractParameterisation):
 
     Six unconstrained numbers `u = (s, a, b, σ)` give
 
-    $$(x, y, z) = e^{s}\,\bigl(\sin^2 a,\; \cos^2 a\,\sin^2 b,\; \cos^2 a\,\cos^2 b\bigr),
-    \qquad (I_1, I_2, I_3) = (y + z,\; x + z,\; x + y), \qquad
+    $$(x, y, z) = e^{s}\,\mathrm{softmax}(a, b, 0), \qquad
+    (I_1, I_2, I_3) = (y + z,\; x + z,\; x + y), \qquad
     \mathbf{I} = A \,\mathrm{diag}(I_1, I_2, I_3)\, A^T,$$
 
     with $A$ the rotation matrix of the modified Rodrigues parameters $σ$
-    ([`jaxdyn.mrp_to_dcm`][]). $x, y, z \ge 0$ are the body's second moments of mass along its
-    principal axes ($x = \int r_1^2\,dm$; $(\sqrt{x}, \sqrt{y}, \sqrt{z})$ is a point of a
-    sphere of radius $e^{s/2}$, in spherical coordinates), so every moment is non-negative and
-    at most the sum of the other two (the triangle inequality): every iterate is a physical
-    body. $e^s = (I_1 + I_2 + I_3)/2$ carries the scale, `(a, b)` the shape, and the columns of
-    $A$ are the principal axes in the body frame. (A side benefit: $|I_j - I_k| / I_i \le 1$
-    keeps Euler's equations non-stiff for every iterate.)
-
-    Every flat plate ($x$, $y$ or $z$ zero: one moment the sum of the other two) lies at a
-    finite, smooth point of the map, where the loss is even in the coordinate that crosses
-    it: a fit whose optimum is a plate, such as the lecture's 1 : 2 : 3 body, approaches it
-    at a steady rate (the distance to the plate about halves per Gauss--Newton step). With
-    logits, $(x, y, z) \propto \mathrm{softmax}(a, b, 0)$, this class's earlier map, a plate
-    lay at infinity and a fit crawled towards it: `jaxdyn fit` of 201 noise-free samples of
-    that body took 542 Levenberg--Marquardt iterations in the start it reported, 151 now.
+    ([`jaxdyn.mrp_to_dcm`][]). With $x, y, z > 0$ every moment is positive and smaller than the
+    sum of the other two (the triangle inequality): every iterate is a physical body. $e^s =
+    (I_1 + I_2 + I_3)/2$ carries the scale, `(a, b)` the shape, and the columns of $A$ are the
+    principal axes in the body frame. (A side benefit: $|I_j - I_k| / I_i < 1$ keeps Euler's
+    equations non-stiff for every iterate.)
 
     Torque-free rates do not change when the tensor is multiplied by a constant, so there the
     scale component is not identifiable: the fitter finds its Jacobian column to be zero,
@@ -197,15 +187,14 @@ class ValidInertia(AbstractParameterisation):
     When the scene fixes the scale (a rotor of known momentum, a known torque) the scale is
     fitted and the moments are absolute.
 
-    Symmetries: permuting the moments together with the axes, flipping an axis, or changing
-    the sign of `a` or `b` gives the same tensor. Reported moments are therefore ascending,
-    with the axes as columns under the sign convention of [`jaxdyn.principal_axes`][].
+    Symmetries: permuting the moments together with the axes, or flipping an axis, gives the
+    same tensor. Reported moments are therefore ascending, with the axes as columns under the
+    sign convention of [`jaxdyn.principal_axes`][].
 
     **Arguments:**
 
-    - `spread`: restarts draw their shapes uniformly over the physical bodies (the triangle of
-      normalised moments) where `spread` is positive (the default), and keep the starting
-      shape where it is 0; the axes of a restart are drawn uniformly over rotations.
+    - `spread`: standard deviation of the shape logits `(a, b)` for the random starting points
+      of restarts (the axes of a restart are drawn uniformly over rotations).
     """
 
     spread: float = 1.0
@@ -229,17 +218,17 @@ class ValidInertia(AbstractParameterisation):
                 f"inertia has shape {value.shape}: expected 3 principal moments or a 3x3 tensor"
             )
         total = jnp.sum(moments)
-        # x = (I2 + I3 - I1) / 2 and so on; a start on a flat plate (x = 0, where the map's
-        # derivative vanishes) is moved slightly inside.
-        x, y, z = jnp.maximum(0.5 * total - moments, 0.02 * total)
-        a = jnp.arcsin(jnp.sqrt(x / (x + y + z)))
-        b = jnp.arctan2(jnp.sqrt(y), jnp.sqrt(z))
-        return jnp.concatenate([jnp.log(x + y + z)[None], jnp.stack([a, b]), dcm_to_mrp(axes)])
+        # x = (I2 + I3 - I1) / 2 and so on. A flat plate (x = 0) is the limit at infinity,
+        # where the gradient vanishes: a start there is moved slightly inside.
+        xyz = jnp.maximum(0.5 * total - moments, 0.02 * total)
+        logs = jnp.log(xyz)
+        scale = jnp.log(jnp.sum(xyz))
+        return jnp.concatenate([scale[None], logs[:2] - logs[2], dcm_to_mrp(axes)])
 
     def moments(self, u: Float[Array, "6"]) -> Float[Array, "3"]:
         """The principal moments `(I1, I2, I3)`, in the order of the columns of `axes(u)`."""
-        sa, ca, sb, cb = jnp.sin(u[1]), jnp.cos(u[1]), jnp.sin(u[2]), jnp.cos(u[2])
-        x, y, z = jnp.exp(u[0]) * jnp.stack([sa**2, (ca * sb)**2, (ca * cb)**2])
+        logits = jnp.stack([u[1], u[2], jnp.zeros_like(u[1])])
+        x, y, z = jnp.exp(u[0]) * jax.nn.softmax(logits)
         return jnp.stack([y + z, x + z, x + y])
 
     def axes(self, u: Float[Array, "6"]) -> Float[Array, "3 3"]:
@@ -252,14 +241,7 @@ class ValidInertia(AbstractParameterisation):
 
     def restart(self, key, u):
         k1, k2 = jax.random.split(key)
-        # Uniform over the shapes (the triangle x + y + z = 1): the spacings of two uniform
-        # numbers (a Dirichlet draw through gamma variates compiles to a program ten times
-        # the size of this one's, whose loading costs a warm `jaxdyn fit` 0.5 s).
-        c = jax.random.uniform(k1, (2,), u.dtype)
-        lo, hi = jnp.min(c), jnp.max(c)
-        x, y, z = lo, hi - lo, 1 - hi
-        drawn = jnp.stack([jnp.arcsin(jnp.sqrt(x)), jnp.arctan2(jnp.sqrt(y), jnp.sqrt(z))])
-        shape = jnp.where(self.spread > 0, drawn, u[1:3])
+        shape = self.spread * jax.random.normal(k1, (2,), u.dtype)
         q = quat_normalize(jax.random.normal(k2, (4,), u.dtype))  # uniform over rotations
         return jnp.concatenate([u[:1], shape, mrp_from_quat(q)])
 
@@ -275,9 +257,9 @@ class ValidInertia(AbstractParameterisation):
 
     def sampling(self, free):
         # The moments and axes are singular coordinates where two moments are equal (the
-        # axes of those two turn freely), and the shape coordinates fold back at a flat plate:
-        # a posterior is sampled in the linear coordinates of the shape instead, when all five
-        # shape components are fitted.
+        # axes of those two turn freely) and near a flat plate (a shape logit runs off to
+        # infinity): a posterior is sampled in the linear coordinates of the shape instead,
+        # when all five shape components are fitted.
         return _ShapeInertia() if bool(np.all(free[1:])) else self
 
 
@@ -311,7 +293,7 @@ class _ShapeInertia(AbstractParameterisation):
     $\mathbf{N}$ (unit trace) is linear in `c`, so the map is smooth everywhere, in particular
     where two moments are equal (there the moments-and-axes coordinates of
     [`jaxdyn.ValidInertia`][] are singular: the axes of the two equal moments turn freely)
-    and across a flat plate (where its shape coordinates fold back). The scale $e^s$ is
+    and at a flat plate (where its shape logits run off to infinity). The scale $e^s$ is
     that of [`jaxdyn.ValidInertia`][] (the same first component).
 
     Not every `c` is a physical body. The prior is zero outside the physical shapes (those
@@ -329,8 +311,8 @@ class _ShapeInertia(AbstractParameterisation):
     is integrable (the equal-moment bodies have codimension 2) and is capped at gaps below
     `_GAP_FLOOR` (of the unit trace), so that it stays finite where two moments are
     exactly equal. (A prior uniform in the moments-and-axes coordinates of
-    [`jaxdyn.ValidInertia`][], with the shape logits it used earlier, piled up at flat
-    plates, where the logits ran off while the tensor hardly changed.)
+    [`jaxdyn.ValidInertia`][] would pile up at flat plates, where its shape logits run off
+    while the tensor hardly changes.)
     """
 
     names: ClassVar[tuple[str, ...]] = ("scale", "shape1", "shape2", "shape3", "shape4",

@@ -16,10 +16,9 @@ point for the other components). Components that
 the data do not determine stay at their values.
 
 Diagnosed on a nearly axisymmetric thin body (moments 1, 1.001, 2: also nearly a flat plate),
-where one chain in the moments-and-axes coordinates (with the shape logits `ValidInertia` then
-used) with a prior uniform in them covered 73 % of 90 % intervals: that prior piles up where
-those coordinates are singular (a flat plate was a shape logit at infinity, a plateau of the
-likelihood that the chain wandered into, up to
+where one chain in the moments-and-axes coordinates with a prior uniform in them covered 73 %
+of 90 % intervals: that prior piles up where those coordinates are singular (a flat plate is
+a shape logit at infinity, a plateau of the likelihood that the chain wandered into, up to
 500 leapfrog steps per draw), and the matrix logarithm of the shape kept a one-sided tail in
 the flat-plate direction (split R-hat 1.7 over four chains). In the linear coordinates the
 posterior is nearly Gaussian up to the physical boundary: about 6 leapfrog steps per draw
