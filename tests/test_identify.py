@@ -685,3 +685,46 @@ def test_a_restart_that_cannot_be_traced_is_drawn_eagerly():
     a, b = (np.asarray(r.values["inertia.principal_moments"]) for r in (plain, own))
     sd = np.max(np.asarray(plain.std["inertia.principal_moments"]))
     assert np.allclose(a, b, atol=1e-3 * sd), (a, b)
+
+
+def test_a_noise_free_flat_plate_stops_where_the_fit_is_exact():
+    """A noise-free record of the 1 : 2 : 3 body, a flat plate (I3 = I1 + I2), which the
+    shape logits reach only at infinity: every stage of the continuation used to crawl
+    towards it into its iteration limit while the loss kept falling. Each stage now stops
+    once its residuals are below its tolerance (in units of the data's size), and the fit
+    gives the moments to the integration's tolerance."""
+    ts = np.linspace(0.0, 20.0, 201)
+    data = euler_rates(np.diag([1.0, 2.0, 3.0]), np.array([0.3, 1.0, 0.2]), ts)
+    res = jd.fit(jd.Scene(jd.RigidBody(GUESS)), ts, {"omega": data}, **FIT_BODY, restarts=1,
+                 max_iter=200)
+    moments = np.asarray(res.values["inertia.principal_moments"])
+    assert res.converged
+    assert np.max(np.abs(moments - np.array([1 / 3, 2 / 3, 1]))) < 5e-8, moments
+    lengths = np.diff([*res.stages, res.iterations])
+    assert len(lengths) == 3 and np.all(lengths < 200), lengths
+
+
+def test_checks_of_concrete_values_compile_nothing(monkeypatch):
+    """A body or effect built from concrete values is checked by NumPy on the host: each
+    eager `jax.numpy` operation would be a small compiled program, looked up in the
+    compilation cache on every new process (10-20 ms each on a warm command). The same
+    checks still refuse a bad value by name."""
+    from jax._src import compiler
+
+    compiled = []
+    original = compiler.compile_or_get_cached
+
+    def counting(backend, computation, *args, **kwargs):
+        compiled.append(str(computation.operation.attributes["sym_name"]))
+        return original(backend, computation, *args, **kwargs)
+
+    monkeypatch.setattr(compiler, "compile_or_get_cached", counting)
+    tensor = np.array([[2.0, 0.1, 0.0], [0.1, 3.0, 0.2], [0.0, 0.2, 4.0]])
+    for body in (jd.RigidBody(tensor), jd.RigidBody([1.0, 2.0, 3.0]),
+                 jd.FallingRod(length=1.3, mass=2.0, g=9.81)):
+        jd.Scene(body)
+    assert compiled == [], compiled
+    with pytest.raises(jd.ParameterError, match="triangle inequality"):
+        jd.RigidBody([1.0, 1.0, 3.0])
+    with pytest.raises(jd.ParameterError, match="symmetric"):
+        jd.RigidBody(tensor + np.triu(np.ones((3, 3)), 1))
