@@ -139,7 +139,7 @@ class RoughFloorRod(AbstractBody):
         self.mu_k = as_float_array("mu_k", mu_k, (), dtype)
 
     def checks(self) -> list[Check]:
-        (xp, mu_s), (_, mu_k) = on_host(self.mu_s), on_host(self.mu_k)
+        xp, mu_s, mu_k = on_host(self.mu_s, self.mu_k)
         return [
             positive_check("length", self.length),
             positive_check("mass", self.mass),

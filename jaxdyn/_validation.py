@@ -79,14 +79,14 @@ def as_per_row(field: str, value, n: int, dtype):
     return arr
 
 
-def on_host(x):
-    """`(np, x as a NumPy array)` for a concrete value, `(jnp, x)` for a traced one: a check of
-    a concrete value is computed by NumPy on the host, where it costs no compiled program
-    (each eager `jax.numpy` operation is one, looked up in the compilation cache on every new
+def on_host(*xs):
+    """`(np, *xs as NumPy arrays)` where all of `xs` are concrete, else `(jnp, *xs)`: a check of
+    concrete values is computed by NumPy on the host, where it costs no compiled program (each
+    eager `jax.numpy` operation is one, looked up in the compilation cache on every new
     process: about 10-20 ms each on a warm command)."""
-    if is_concrete(x):
-        return np, np.asarray(x)
-    return jnp, x
+    if is_concrete(*xs):
+        return (np, *(np.asarray(x) for x in xs))
+    return (jnp, *xs)
 
 
 def device_array(x, dtype):
