@@ -1,6 +1,7 @@
 """Inertia: principal moments, principal axes and physical validity."""
 
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
 from ._validation import Check, on_host
@@ -46,7 +47,7 @@ def moments_checks(field: str, moments: Float[Array, "3"]) -> list[Check]:
     up to a relative round-off of `8 eps`.
     """
     xp, m = on_host(moments)
-    eps = xp.finfo(m.dtype).eps
+    eps = jnp.finfo(m.dtype).eps  # (jnp: it knows bfloat16; it compiles nothing)
     total = xp.sum(m)
     triangle = m > (total - m) * (1 + 8 * eps)
     return [
@@ -60,7 +61,7 @@ def moments_checks(field: str, moments: Float[Array, "3"]) -> list[Check]:
 def tensor_checks(field: str, tensor: Float[Array, "3 3"]) -> list[Check]:
     """Checks for a full inertia tensor: finite, symmetric, then its principal moments."""
     xp, t = on_host(tensor)
-    eps = xp.finfo(t.dtype).eps
+    eps = jnp.finfo(t.dtype).eps
     scale = xp.max(xp.abs(t))
     asym = xp.abs(t - t.T) > 1e3 * eps * scale
     finite = xp.isfinite(t)
@@ -69,7 +70,10 @@ def tensor_checks(field: str, tensor: Float[Array, "3 3"]) -> list[Check]:
         (field, tensor, asym, "inertia tensor must be symmetric"),
     ]
     safe = xp.where(finite & ~asym, t, xp.eye(3, dtype=t.dtype))
-    moments = xp.linalg.eigvalsh(0.5 * (safe + safe.T))
+    if xp is np and t.dtype not in (np.float32, np.float64):  # (LAPACK: float32 at least)
+        moments = np.linalg.eigvalsh(0.5 * (safe + safe.T).astype(np.float32)).astype(t.dtype)
+    else:
+        moments = xp.linalg.eigvalsh(0.5 * (safe + safe.T))
     return checks + moments_checks(field + " (principal moments)", moments)
 
 

@@ -690,18 +690,19 @@ def test_a_restart_that_cannot_be_traced_is_drawn_eagerly():
 def test_a_noise_free_flat_plate_stops_where_the_fit_is_exact():
     """A noise-free record of the 1 : 2 : 3 body, a flat plate (I3 = I1 + I2), which the
     shape logits reach only at infinity: every stage of the continuation used to crawl
-    towards it into its iteration limit while the loss kept falling. Each stage now stops
-    once its residuals are below its tolerance (in units of the data's size), and the fit
-    gives the moments to the integration's tolerance."""
+    towards it into its iteration limit while the loss kept falling. The early stages now
+    stop once their residuals are below their tolerance (1e-4 of the data's size); the final
+    stage, which may still run out of iterations at the integration's precision, counts as
+    converged there, and gives the moments to that precision."""
     ts = np.linspace(0.0, 20.0, 201)
     data = euler_rates(np.diag([1.0, 2.0, 3.0]), np.array([0.3, 1.0, 0.2]), ts)
     res = jd.fit(jd.Scene(jd.RigidBody(GUESS)), ts, {"omega": data}, **FIT_BODY, restarts=1,
                  max_iter=200)
     moments = np.asarray(res.values["inertia.principal_moments"])
     assert res.converged
-    assert np.max(np.abs(moments - np.array([1 / 3, 2 / 3, 1]))) < 5e-8, moments
+    assert np.max(np.abs(moments - np.array([1 / 3, 2 / 3, 1]))) < 1e-8, moments
     lengths = np.diff([*res.stages, res.iterations])
-    assert len(lengths) == 3 and np.all(lengths < 200), lengths
+    assert len(lengths) == 3 and np.all(lengths[:2] < 200), lengths
 
 
 def test_checks_of_concrete_values_compile_nothing(monkeypatch):

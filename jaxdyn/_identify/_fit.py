@@ -312,10 +312,14 @@ def _levenberg_marquardt(problem, u0, free, ts, data, weights, tol, exact, *, ma
     differ by less than `tol (1 + |u|)` and so do the residuals), when an accepted step
     lowered the loss by less than `tol` (relative), or when the fit is exact to `exact`: the
     RMS of the residuals, which are in units of the data's own size, below `exact` (0: not
-    used; single shooting passes its stage's `tol`, which noisy records never reach). Without
-    it, a noise-free record whose body is a flat plate ran every stage of its continuation
-    into `max_iter`: the shape logits crawl towards the plate, which lies at infinity, while
-    the loss keeps falling by a constant factor."""
+    used). Single shooting passes its early stages' tolerance: an early stage has only to
+    reach the basin of the next, and without this a noise-free record whose body is a flat
+    plate ran every stage of its continuation into `max_iter` (the shape logits crawl towards
+    the plate, which lies at infinity, while the loss keeps falling by a constant factor).
+    The final stage does not use it: with a tolerance near the data's precision (float32's
+    1e-5) it would stop before the estimate is as good as its reported interval; instead a
+    final stage that runs out of iterations with residuals below `tol` counts as converged
+    (`fit`)."""
 
     residuals = _with_forward_jacobian(
         lambda v: problem.residuals(jnp.where(free, v, u0), ts, data, weights)
@@ -714,7 +718,7 @@ def _draw_restarts(problem, u0, free, key, *, count):
 
 @stored_filter_jit
 def _restart_points(problem, u0, free, key, *, count):
-    """`count` random starting points, the same as `_draw_restarts`'s, in one program (drawn
+    """`count` random starting points, `_draw_restarts`'s (to round-off), in one program (drawn
     eagerly, they are about 30 operations, each lowered and looked up in the compilation cache
     on every run: 0.1-0.2 s of a warm `jaxdyn fit`), mapped over the keys (unrolled over
     them, the program's random-number code grows with `count`: 290 kB, 0.3 s to load from the
@@ -1103,7 +1107,8 @@ def fit(
     if restarts > 1:
         try:
             drawn = _restart_points(problem, u0, free, key, count=restarts - 1)
-        except _UNTRACEABLE:  # a user's `restart` with NumPy or Python logic: drawn eagerly
+        except (*_UNTRACEABLE, NotImplementedError):  # a user's `restart` with NumPy or
+            # Python logic, or a callback that cannot be mapped: drawn eagerly
             drawn = _draw_restarts(problem, u0, free, key, count=restarts - 1)
         starts += list(np.asarray(drawn))
 
@@ -1142,7 +1147,8 @@ def fit(
             t_h = ts[ts <= ts[0] + h * (ts[-1] - ts[0])][-1]
             ts_h, w = _clipped(ts_host, weights_host, t_h)
             stage_tol = tol_a if h == 1.0 else tol_early
-            u, loss, k, ok, hist = polish(problem, u, free, ts_h, obs_p, w, stage_tol, stage_tol,
+            exact = zero if h == 1.0 else tol_early  # (see `_levenberg_marquardt`)
+            u, loss, k, ok, hist = polish(problem, u, free, ts_h, obs_p, w, stage_tol, exact,
                                           max_iter=max_iter, progress=progress)
             u = _fixed(u)
             k = int(k)
@@ -1150,7 +1156,11 @@ def fit(
             stages.append(iterations)
             iterations += k
         loss = float(loss)
-        return {"loss": loss if np.isfinite(loss) else np.inf, "u": u, "converged": bool(ok),
+        # A final stage that ran out of iterations where its residuals were all below `tol`
+        # of the data's size (a noise-free record, at the integration's precision) has
+        # nothing left to fit: converged.
+        ok = bool(ok) or loss <= 0.5 * n_obs * tol**2
+        return {"loss": loss if np.isfinite(loss) else np.inf, "u": u, "converged": ok,
                 "iterations": iterations, "history": np.concatenate(history),
                 "stages": tuple(stages)}
 
@@ -1208,10 +1218,14 @@ def fit(
                 if bar is not None:
                     bar.update(max(0, bar.total // restarts * len(runs) - bar.n))
                 losses = np.array([run["loss"] for run in runs])
-                # (Two fits exact to `tol`, see `_levenberg_marquardt`, agree whatever their
-                # losses below that level.)
-                agreeing = [run["converged"] and run["loss"] <= losses.min() * (1 + 1e-5)
-                            + 0.5 * n_obs * tol**2 for run in runs]
+                # Fits whose residuals are all below `tol` of the data's size (noise-free
+                # data, each ending at the integration's precision) agree whatever their
+                # losses below that level.
+                exact_level = 0.5 * n_obs * tol**2
+                exact = losses.min() <= exact_level
+                agreeing = [run["converged"] and (run["loss"] <= losses.min() * (1 + 1e-5)
+                                                  or (exact and run["loss"] <= exact_level))
+                            for run in runs]
                 if sum(agreeing) >= agree:
                     break
         finally:
