@@ -48,7 +48,7 @@ from .._scene import Scene
 from .._simulate import check_tolerances, simulate_unchecked
 from .._stored_jit import stored_filter_jit
 from .._tolerance import ScaledPIDController
-from .._validation import ParameterError, format_value
+from .._validation import ParameterError, device_array, format_value
 from ._parameterisation import AbstractParameterisation, Unconstrained
 
 # Samples are padded (with zero weight) to a multiple of this, so that data sets of similar
@@ -725,6 +725,8 @@ def _restart_points(problem, u0, free, key, *, count):
     cache)."""
     return jax.vmap(lambda k: _restart_point(problem, u0, free, k))(
         jax.random.split(key, count))
+
+
 _UNTRACEABLE = (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConversionError,
                 jax.errors.TracerIntegerConversionError)
 
@@ -825,7 +827,7 @@ def _setup(scene, ts, data, parameters, initial, y0, sigma, rtol, atol, max_step
     problem = _Problem(
         scene=scene, y0=y0, names=names, is_state=tuple(n in initial for n in names),
         maps=maps, sizes=tuple(m.size() for m in maps), outputs=outputs, kinds=kinds,
-        sigma=tuple(jax.device_put(np.asarray(sigmas[k] * scale, dtype)) for k in outputs),
+        sigma=tuple(device_array(sigmas[k] * scale, dtype) for k in outputs),
         rtol=rtol, atol=atol, max_steps=max_steps,
         dtype=dtype,
     )
@@ -861,8 +863,7 @@ def _natural_clock(problem, u0, ts, obs) -> np.ndarray:
     if names:
         idx = np.unique(np.linspace(0, ts.size - 1, min(ts.size, _CLOCK_POINTS + 1))
                         .round().astype(int))
-        measured = {k: jax.device_put(np.asarray(obs[k][idx[:-1]], problem.dtype))
-                    for k in names}
+        measured = {k: device_array(obs[k][idx[:-1]], problem.dtype) for k in names}
         dt = np.diff(ts[idx])
         scales = np.asarray(_time_scales(scene, y0, jax.device_put(ts[idx[:-1]]),
                                          jax.device_put(ts[idx[1:]]), measured), float)
@@ -1113,10 +1114,13 @@ def fit(
         starts += list(np.asarray(drawn))
 
     polish = _levenberg_marquardt if method == "lm" else _lbfgs
-    tol_a = jnp.asarray(tol, u0.dtype)
-    tol_early = jnp.asarray(max(tol, 1e-4), u0.dtype)
-    zero = jnp.zeros((), u0.dtype)
-    lr = jnp.asarray(learning_rate, u0.dtype)
+    tol_a = device_array(tol, u0.dtype)
+    tol_early = device_array(max(tol, 1e-4), u0.dtype)
+    zero = device_array(0.0, u0.dtype)
+    lr = device_array(learning_rate, u0.dtype)
+    # The loss of a fit whose residuals are all below `tol` of the data's size (see
+    # `_levenberg_marquardt`): noise-free data, at the integration's precision.
+    exact_level = 0.5 * n_obs * tol**2
 
     def _prefix(shooting):
         """The start of the record (4 x 10/W), fitted first by single shooting with its
@@ -1159,7 +1163,7 @@ def fit(
         # A final stage that ran out of iterations where its residuals were all below `tol`
         # of the data's size (a noise-free record, at the integration's precision) has
         # nothing left to fit: converged.
-        ok = bool(ok) or loss <= 0.5 * n_obs * tol**2
+        ok = bool(ok) or loss <= exact_level
         return {"loss": loss if np.isfinite(loss) else np.inf, "u": u, "converged": ok,
                 "iterations": iterations, "history": np.concatenate(history),
                 "stages": tuple(stages)}
@@ -1218,10 +1222,7 @@ def fit(
                 if bar is not None:
                     bar.update(max(0, bar.total // restarts * len(runs) - bar.n))
                 losses = np.array([run["loss"] for run in runs])
-                # Fits whose residuals are all below `tol` of the data's size (noise-free
-                # data, each ending at the integration's precision) agree whatever their
-                # losses below that level.
-                exact_level = 0.5 * n_obs * tol**2
+                # Fits exact to `tol` agree whatever their losses below that level.
                 exact = losses.min() <= exact_level
                 agreeing = [run["converged"] and (run["loss"] <= losses.min() * (1 + 1e-5)
                                                   or (exact and run["loss"] <= exact_level))
@@ -1254,7 +1255,7 @@ def fit(
             # same compiled functions: `sigma` is an array of the problem).
             rms = _rms_by_output(sums, obs, problem.sigma, problem.kinds)
             problem = eqx.tree_at(lambda p: p.sigma, problem,
-                                  tuple(jax.device_put(np.asarray(rms[k] * setup.scale, dtype))
+                                  tuple(device_array(rms[k] * setup.scale, dtype)
                                         for k in outputs))
             # (Multiple shooting resumes from its segment states: re-anchored at the data, they
             # would start far from the optimum in the new weights.)
