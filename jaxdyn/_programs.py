@@ -24,6 +24,7 @@ import hashlib
 import importlib.metadata
 import os
 import pickle
+import platform
 import re
 from pathlib import Path
 
@@ -119,14 +120,42 @@ class StoredProgram:
         return call
 
     def _load(self, args, key):
-        """The program for this signature: deserialised from disk, or exported and stored
-        (`jax.jit` alone where the compilation cache is off or the structure untrusted)."""
+        """The program for this signature: this machine's compiled program read from disk,
+        or the exported program deserialised (or exported and stored) and compiled, and its
+        compiled form stored (`jax.jit` alone where the compilation cache is off or the
+        structure untrusted)."""
         where = _directory() if self.trusted else None
         if where is None:
             return self.jitted
         text = f"{_version()}|{self.text}|{key}|x64={jax.config.jax_enable_x64}|" \
                f"{jax.default_backend()}"
         stem = where / hashlib.sha256(text.encode()).hexdigest()
+        compiled_path = where / (hashlib.sha256(f"{text}|{_machine()}".encode()).hexdigest()
+                                 + ".exe")
+        loaded = _read_executable(compiled_path)
+        if loaded is None:
+            return self._exported(stem, args, compiled_path)
+        compiled, out_tree = loaded
+        fallback = []
+
+        def call(*a):
+            try:
+                return jax.tree_util.tree_unflatten(out_tree, compiled(*a))
+            except jax.errors.JaxRuntimeError as e:
+                # A stored program that does not run here (a kernel missing from it): the
+                # exported program instead, compiled as usual; the stored one is removed.
+                if "NOT_FOUND" not in str(e):
+                    raise
+                if not fallback:
+                    compiled_path.unlink(missing_ok=True)
+                    fallback.append(self._exported(stem, a, None))
+                return fallback[0](*a)
+
+        return call
+
+    def _exported(self, stem: Path, args, compiled_path: Path | None):
+        """The exported program (read from `stem`, or exported and stored there) under
+        `jax.jit`; its compiled form stored at `compiled_path` (unless `None`)."""
         try:
             blob = (stem.with_suffix(".bin")).read_bytes()
             out_tree, weak = pickle.loads((stem.with_suffix(".tree")).read_bytes())
@@ -140,8 +169,14 @@ class StoredProgram:
             outs = exported.call(*args)
             return [_weakly_typed(x) if w else x for x, w in zip(outs, weak)]
 
-        program = _on_one_device(_named(call, self.fn))
-        return lambda *a: jax.tree_util.tree_unflatten(out_tree, program(*a))
+        # Named with jaxdyn's version: JAX's persistent cache then never holds the program
+        # from an earlier version (its executable could not be stored: `_write_executable`).
+        program = _on_one_device(_named(call, self.fn, _version()[:10]))
+        compiled = None
+        if compiled_path is not None:
+            compiled = _write_executable(compiled_path, program, args, out_tree)
+        run = program if compiled is None else compiled
+        return lambda *a: jax.tree_util.tree_unflatten(out_tree, run(*a))
 
     def _export(self, stem: Path, args):
         found = []
@@ -166,13 +201,105 @@ class StoredProgram:
                 _weakly_typed(np.zeros(()))
         except Exception:  # a program that cannot be exported is traced as usual
             return None, None, None
-        stem.parent.mkdir(parents=True, exist_ok=True)
         for suffix, data in ((".tree", tree), (".bin", blob)):
-            tmp = stem.with_suffix(f"{suffix}.{os.getpid()}.tmp")
-            tmp.write_bytes(data)
-            os.replace(tmp, stem.with_suffix(suffix))  # atomic: concurrent writers agree
+            _write(stem.with_suffix(suffix), data)
         # Called as a later process will call it, from its serialised form.
         return jax.export.deserialize(bytearray(blob)), *found[0]
+
+
+_MACHINE = None
+
+
+def _machine() -> str:
+    """What a compiled program is specific to beyond JAX's versions: the processor (XLA:CPU
+    compiles for the host's instruction set) and the backend's platform version."""
+    global _MACHINE
+    if _MACHINE is None:
+        cpu = ""
+        try:
+            with open("/proc/cpuinfo") as f:
+                cpu = "".join(sorted({line for line in f
+                                      if line.startswith(("model name", "flags", "Features",
+                                                          "CPU part"))}))
+        except OSError:
+            cpu = platform.processor()
+        client = jax.devices()[0].client
+        _MACHINE = f"{platform.machine()}|{cpu}|{client.platform}|{client.platform_version}"
+    return _MACHINE
+
+
+_CUSTOM_CALL = re.compile(r"custom_call @(\w+)|call_target_name = \"(\w+)\"")
+
+
+def _write_executable(path: Path, program, args, out_tree):
+    """`program` compiled for `args`, and stored at `path` as this machine's compiled program
+    (a later process loads it without tracing, lowering or compiling: `_read_executable`).
+    `None` where it cannot be (the program is then called as usual). Not stored where JAX's
+    persistent cache held the program (an earlier version of jaxdyn compiled the same one):
+    XLA:CPU's executable deserialised from that cache serialises without its kernels
+    ("Function ... not found" when run; measured with jax 0.10), so only a fresh compilation
+    is stored (JAX's cache serves that program as before)."""
+    hits = []
+
+    def listen(event, **kwargs):
+        if event == "/jax/compilation_cache/cache_hits":
+            hits.append(event)
+
+    try:
+        from jax.experimental import serialize_executable
+
+        lowered = program.lower(*args)
+        targets = {a or b for a, b in _CUSTOM_CALL.findall(lowered.as_text())}
+        if any(not t.startswith("lapack_") for t in targets):
+            return None  # only LAPACK's kernels are known to be set up on loading (below)
+        jax.monitoring.register_event_listener(listen)
+        try:
+            compiled = lowered.compile()
+        finally:
+            jax.monitoring.unregister_event_listener(listen)
+        if hits:
+            return compiled
+        blob = pickle.dumps((serialize_executable.serialize(compiled), out_tree,
+                             bool(targets)))
+    except Exception:  # not serialisable: called as usual
+        return None
+    _write(path, blob)
+    return compiled
+
+
+def _read_executable(path: Path):
+    """The compiled program stored by `_write_executable` and the tree of its outputs, or
+    `None` (not stored, unreadable, or not loadable by this JAX)."""
+    import time
+
+    start = time.perf_counter()
+    try:
+        blob = path.read_bytes()
+    except OSError:
+        return None
+    try:
+        from jax.experimental import serialize_executable
+
+        (payload, in_tree, flat_tree), out_tree, lapack = pickle.loads(blob)
+        if lapack:
+            # LAPACK's kernels read their routines from scipy, which JAX sets up when it
+            # lowers a program that calls them; a loaded program is never lowered.
+            from jax._src.lax.linalg import initialize_lapack  # pyright: ignore
+
+            initialize_lapack()
+        compiled = serialize_executable.deserialize_and_load(payload, in_tree, flat_tree)
+    except Exception:
+        return None
+    jax.monitoring.record_event_duration_secs("/jaxdyn/programs/load_duration",
+                                              time.perf_counter() - start)
+    return compiled, out_tree
+
+
+def _write(path: Path, data: bytes) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(f"{path.suffix}.{os.getpid()}.tmp")
+    tmp.write_bytes(data)
+    os.replace(tmp, path)  # atomic: concurrent writers agree
 
 
 def _on_one_device(fn):
@@ -198,10 +325,12 @@ def _weakly_typed(x):
     return _convert_element_type(x, weak_type=True)
 
 
-def _named(fn, like):
-    """`fn` under the name of `like` (JAX's logs and caches name a program after it)."""
+def _named(fn, like, tag=None):
+    """`fn` under the name of `like` (JAX's logs and caches name a program after it), with
+    `tag` appended."""
     def program(*args):
         return fn(*args)
 
-    program.__name__ = program.__qualname__ = getattr(like, "__name__", "program")
+    name = getattr(like, "__name__", "program")
+    program.__name__ = program.__qualname__ = name if tag is None else f"{name}_{tag}"
     return program

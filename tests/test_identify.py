@@ -594,14 +594,15 @@ def test_cli_fit_programs_are_cached_on_the_second_run(tmp_path):
     assert any("levenberg_marquardt" in w for w in written), written
     assert any("jacobian" in w for w in written), written
     assert not re.search(r"Writing .* to persistent compilation cache", second)
+    compiled = re.findall(r"Compiling (jit\([^)]*\))", second)
     hits = re.findall(r"Persistent compilation cache hit for '([^']+)'", second)
-    assert "jit__levenberg_marquardt" in hits and "jit__jacobian" in hits, hits
-    # ... and reads the fit's stored programs instead of tracing them (`_stored_jit`): the
-    # first run traces the function and then the call of its exported form, the second only
-    # that call.
+    assert len(hits) == len(compiled), (compiled, hits)
+    # ... and loads the fit's stored compiled programs (`_stored_jit`, `_programs`): the first
+    # run traces each function and then the call of its exported form, the second neither.
     for name in ("_levenberg_marquardt", "_jacobian"):
-        traced = re.compile(rf"Finished tracing {name} for jit")
-        assert len(traced.findall(second)) < len(traced.findall(first)), name
+        assert re.search(rf"Finished tracing {name}", first), name
+        assert not re.search(rf"Finished tracing {name}", second), name
+        assert not any(name in c for c in compiled), (name, compiled)
 
 
 BAD = [
@@ -703,6 +704,27 @@ def test_a_noise_free_flat_plate_stops_where_the_fit_is_exact():
     assert np.max(np.abs(moments - np.array([1 / 3, 2 / 3, 1]))) < 1e-8, moments
     lengths = np.diff([*res.stages, res.iterations])
     assert len(lengths) == 3 and np.all(lengths[:2] < 200), lengths
+
+
+def test_an_exact_fit_ends_the_search_alone_and_a_bad_key_is_refused():
+    """A start that fits a noise-free record to `tol` of the data's size is the global
+    minimum: no further start is drawn (nor its random-number programs loaded). A noisy
+    record still needs two agreeing starts. The key is checked by name."""
+    rng = np.random.default_rng(5507)
+    ts = np.linspace(0.0, 15.0, 151)
+    tensor, w0 = np.diag([1.0, 1.6, 2.1]), np.array([0.4, 0.9, -0.3])
+    data = euler_rates(tensor, w0, ts)
+    scene = jd.Scene(jd.RigidBody(GUESS))
+    exact = jd.fit(scene, ts, {"omega": data}, **FIT_BODY, restarts=4, key=np.int64(3))
+    assert exact.converged and len(exact.restart_losses) == 1, exact.restart_losses
+    moments = np.asarray(exact.values["inertia.principal_moments"])
+    np.testing.assert_allclose(moments, np.array([1.0, 1.6, 2.1]) / 2.1, rtol=1e-7)
+    noisy = jd.fit(scene, ts, {"omega": data + 0.01 * rng.normal(size=data.shape)},
+                   **FIT_BODY, restarts=4, key=3)
+    assert noisy.converged and len(noisy.restart_losses) >= 2, noisy.restart_losses
+    for bad in ("abc", 1.5, True, np.zeros(3)):
+        with pytest.raises(jd.ParameterError, match="key=.*expected an integer seed"):
+            jd.fit(scene, ts, {"omega": data}, **FIT_BODY, restarts=2, key=bad)
 
 
 def test_checks_of_concrete_values_compile_nothing(monkeypatch):

@@ -2,6 +2,8 @@
 program instead of tracing it, gets the same numbers, and nothing is stored that could be
 stale (a structure naming code outside jaxdyn and its libraries)."""
 
+import uuid
+
 import jax
 import numpy as np
 import pytest
@@ -112,3 +114,80 @@ def test_host_and_device_inputs_share_one_compiled_program(on_disk, tmp_path, mo
     assert str(second.outcome) == str(whole.outcome)
     np.testing.assert_allclose(float(second.y_final["theta"]), float(whole.y_final["theta"]),
                                rtol=1e-6)
+
+
+def _load_events():
+    """Counts jaxdyn's event for a stored compiled program loaded (`_programs`)."""
+    seen = []
+
+    def listen(event, duration, **kwargs):
+        if event == "/jaxdyn/programs/load_duration":
+            seen.append(duration)
+
+    return seen, listen
+
+
+def test_a_later_process_loads_this_machines_compiled_program(stored, monkeypatch):
+    """The compiled program is stored per machine: a later process loads it (no tracing, no
+    lowering, no compilation), another machine's is not used, and a stored program that does
+    not run here gives way to the exported program (and is removed)."""
+    _programs._version()
+    # (A version of its own: compiled afresh, not read from JAX's cache; see the next test.)
+    monkeypatch.setattr(_programs, "_VERSION", uuid.uuid4().hex)
+    y0 = SCENE.state(theta=0.2)
+    calls = []
+    first, leaves = _program(calls)
+    out = first(leaves, y0, np.asarray(5.0))
+    assert len(list(stored.glob("*.exe"))) == 1
+    seen, listen = _load_events()
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        with jax.log_compiles(False):
+            again, _ = _program(calls)
+            out2 = again(leaves, y0, np.asarray(5.0))
+        assert calls == [1] and len(seen) == 1
+        for a, b in zip(jax.tree.leaves(out), jax.tree.leaves(out2)):
+            np.testing.assert_array_equal(a, b)
+        # Another machine (another processor) sharing the folder does not load it: it
+        # compiles the export (here read from JAX's cache, so it stores nothing: see below).
+        here = _programs._machine()
+        monkeypatch.setattr(_programs, "_MACHINE", "another processor")
+        other, _ = _program(calls)
+        out_other = other(leaves, y0, np.asarray(5.0))
+        assert calls == [1] and len(seen) == 1 and len(list(stored.glob("*.exe"))) == 1
+        np.testing.assert_array_equal(out_other[0], out[0])
+
+        # A stored program that fails to run here (a kernel missing from it, as XLA:CPU
+        # reports it): the exported program runs instead, and the stored one is removed.
+        def broken(path):
+            def run(*args):
+                raise jax.errors.JaxRuntimeError("NOT_FOUND: Function fusion not found")
+            return run, jax.tree.structure(out)
+
+        monkeypatch.setattr(_programs, "_MACHINE", here)
+        monkeypatch.setattr(_programs, "_read_executable", broken)
+        third, _ = _program(calls)
+        out3 = third(leaves, y0, np.asarray(5.0))
+        for a, b in zip(jax.tree.leaves(out), jax.tree.leaves(out3)):
+            np.testing.assert_array_equal(a, b)
+        assert calls == [1] and not list(stored.glob("*.exe"))
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+
+
+def test_a_program_held_by_the_compilation_cache_is_not_stored_compiled(stored, monkeypatch):
+    """XLA:CPU's executable read from JAX's persistent cache serialises without its kernels:
+    it is never stored (a fresh compilation is)."""
+    _programs._version()
+    monkeypatch.setattr(_programs, "_VERSION", uuid.uuid4().hex)
+    def program(x):
+        return {"y": jax.numpy.cos(x) * 3.0}
+
+    out = _programs.StoredProgram("test-hit", "hit", (), program)(np.ones(5))
+    (exe,) = stored.glob("*.exe")
+    exe.unlink()
+    # The same program again (stored export, compiled program gone): JAX's cache holds it.
+    out2 = _programs.StoredProgram("test-hit", "hit", (), program)(np.ones(5))
+    np.testing.assert_array_equal(out["y"], out2["y"])
+    if jax.config.jax_compilation_cache_dir:  # (the tests run with the cache on)
+        assert not list(stored.glob("*.exe"))

@@ -14,6 +14,7 @@ _COMPILE_EVENTS = {  # JAX's monitoring events, by what the report calls them
     "/jax/core/compile/jaxpr_trace_duration": "trace_s",
     "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower_s",
     "/jax/core/compile/backend_compile_duration": "compile_s",
+    "/jaxdyn/programs/load_duration": "load_s",  # a stored compiled program (`_programs`)
 }
 _EVENTS: list[tuple[float, str, float]] = []  # (end time, phase, seconds)
 _LISTENING: list = []  # the listener, once registered
@@ -38,13 +39,14 @@ def compile_clock() -> float:
 def timing_since(t0: float) -> dict[str, float]:
     """Seconds spent since `t0 = compile_clock()` tracing, lowering and compiling (JAX's own
     monitoring events, so a command measures itself without running anything twice; a program
-    loaded from the persistent cache costs no compile time), and the rest as `run_s`. Eager
+    loaded from the persistent cache costs no compile time), loading stored compiled programs
+    (`load_s`, jaxdyn's event), and the rest as `run_s`. Eager
     operations compiled while tracing nest inside the trace: `run_s` subtracts the union of
     the intervals, not their sum."""
     import time
 
     now = time.perf_counter()
-    out = {"trace_s": 0.0, "lower_s": 0.0, "compile_s": 0.0}
+    out = {"trace_s": 0.0, "lower_s": 0.0, "compile_s": 0.0, "load_s": 0.0}
     spans = []
     for end, phase, seconds in _EVENTS:
         if end > t0:

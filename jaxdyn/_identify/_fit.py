@@ -614,12 +614,28 @@ def _rms_by_output(sums, obs, sigmas, kinds):
             for (name, d), sigma, kind in zip(obs.items(), sigmas, kinds)}
 
 
+class _Seed(int):
+    """An integer seed, made a JAX key where it is used (`jax.random.PRNGKey` is two compiled
+    programs, which a fit that needs no random numbers does not load)."""
+
+
 def _as_key(key):
+    """`key` checked: a JAX PRNG key, or an integer seed (`None`: 0)."""
     if key is None:
-        return jax.random.PRNGKey(0)
-    if isinstance(key, int):
-        return jax.random.PRNGKey(key)
-    return key
+        key = 0
+    if isinstance(key, int | np.integer) and not isinstance(key, bool):
+        return _Seed(key)
+    if isinstance(key, jax.Array | np.ndarray) and (
+            jnp.issubdtype(key.dtype, jax.dtypes.prng_key)
+            or (key.dtype == np.uint32 and key.shape == (2,))):
+        return key
+    raise ParameterError(f"key={format_value(key)}: expected an integer seed or a JAX PRNG key "
+                         "(jax.random.key(0) or jax.random.PRNGKey(0))")
+
+
+def _key(key):
+    """A JAX key of `_as_key`'s value."""
+    return jax.random.PRNGKey(int(key)) if isinstance(key, _Seed) else key
 
 
 def _dtype(ts, data):
@@ -695,7 +711,7 @@ def _pad(ts, data, bucket=_BUCKET):
     return ts_p, data_p, weights
 
 
-@eqx.filter_jit
+@stored_filter_jit
 def _starting_point(maps, starting, names):
     return jnp.concatenate([jnp.ravel(m.to_unconstrained(starting[n]))
                             for n, m in zip(names, maps)]).astype(jnp.result_type(float))
@@ -731,7 +747,7 @@ _UNTRACEABLE = (jax.errors.ConcretizationTypeError, jax.errors.TracerArrayConver
                 jax.errors.TracerIntegerConversionError)
 
 
-@eqx.filter_jit
+@stored_filter_jit
 def _scene_and_state(problem, u):
     return problem.scene_and_state(u)
 
@@ -842,7 +858,7 @@ _TURNS = 10.0  # the first horizon of a long record, in natural time units (1/W)
 _CLOCK_POINTS = 1024  # samples at which the natural clock reads the time scale
 
 
-@eqx.filter_jit
+@stored_filter_jit
 def _time_scales(scene, y0, t0, t1, measured):
     """The scene's natural time scale over each `[t0_k, t1_k]`, from `y0` with the state
     variables of `measured` replaced by their rows (batched)."""
@@ -962,7 +978,10 @@ def fit(
     - `restarts`: number of starting points: the given one, then random ones drawn by each
       parameterisation's `restart`. The best final loss wins.
     - `agree`: stop early once this many converged starts agree on the best loss (to a
-      relative `1e-5`): the minimum has then been found from independent starts.
+      relative `1e-5`): the minimum has then been found from independent starts. A start
+      that fits the record exactly (the RMS of the residuals below `tol` of the data's size:
+      noise-free data, to the integration's precision) ends the search alone: no start can
+      fit better.
     - `key`: a JAX PRNG key or an integer seed for the restarts.
     - `method`: `"lm"` (Levenberg--Marquardt from optimistix's damped Newton descent and
       trust region; default) or `"lbfgs"` (optax's L-BFGS with a zoom line search).
@@ -1055,6 +1074,7 @@ def fit(
         if not isinstance(value, int) or value < low:
             kind = "a positive" if low else "a non-negative"
             raise ParameterError(f"{field}={value!r}: must be {kind} integer")
+    key = _as_key(key)
     if horizons is not None:
         horizons = tuple(float(h) for h in horizons)
         if not horizons or horizons[-1] != 1.0 or any(not 0 < h <= 1 for h in horizons):
@@ -1103,15 +1123,20 @@ def fit(
 
     ts_host, weights_host = np.asarray(ts_p), np.asarray(weights)
 
-    key = _as_key(key)
-    starts = [u0]
-    if restarts > 1:
-        try:
-            drawn = _restart_points(problem, u0, free, key, count=restarts - 1)
-        except (*_UNTRACEABLE, NotImplementedError):  # a user's `restart` with NumPy or
-            # Python logic, or a callback that cannot be mapped: drawn eagerly
-            drawn = _draw_restarts(problem, u0, free, key, count=restarts - 1)
-        starts += list(np.asarray(drawn))
+    drawn = []
+
+    def _start(i):
+        """The `i`-th starting point: the given one, then the random ones, drawn when first
+        needed (a fit that ends after its first start loads no program for them)."""
+        if i and not drawn:
+            try:
+                points = _restart_points(problem, u0, free, _key(key), count=restarts - 1)
+            except (*_UNTRACEABLE, NotImplementedError):  # a user's `restart` with NumPy
+                # or Python logic, or a callback that cannot be mapped: drawn eagerly
+                points = _draw_restarts(problem, u0, free, _key(key),
+                                        count=restarts - 1)
+            drawn.extend(np.asarray(points))
+        return drawn[i - 1] if i else u0
 
     polish = _levenberg_marquardt if method == "lm" else _lbfgs
     tol_a = device_array(tol, u0.dtype)
@@ -1217,11 +1242,13 @@ def fit(
             bar = tqdm(total=total, desc="fit", unit="it")
             _BAR["bar"] = bar
         try:
-            for u_start in starts:
-                runs.append(_run_start(u_start))
+            for i in range(restarts):
+                runs.append(_run_start(_start(i)))
                 if bar is not None:
                     bar.update(max(0, bar.total // restarts * len(runs) - bar.n))
                 losses = np.array([run["loss"] for run in runs])
+                if runs[-1]["converged"] and runs[-1]["loss"] <= exact_level:
+                    break  # exact to `tol`: the global minimum (see `agree`)
                 # Fits exact to `tol` agree whatever their losses below that level.
                 exact = losses.min() <= exact_level
                 agreeing = [run["converged"] and (run["loss"] <= losses.min() * (1 + 1e-5)
@@ -1306,7 +1333,7 @@ def fit(
         from ._posterior import sample
 
         draws, report = sample(problem, u.astype(u0.dtype), free_np, u0, ts_p, obs_p, weights,
-                               s2, cov, jax.random.fold_in(key, 1), _summaries,
+                               s2, cov, jax.random.fold_in(_key(key), 1), _summaries,
                                draws=posterior, warmup=warmup, chains=chains)
         acceptance = float(np.mean(report["acceptance"]))
         leapfrogs = float(np.mean(report["leapfrogs"]))
