@@ -136,22 +136,8 @@ class StoredProgram:
         if loaded is None:
             return self._exported(stem, args, compiled_path)
         compiled, out_tree = loaded
-        fallback = []
-
-        def call(*a):
-            try:
-                return jax.tree_util.tree_unflatten(out_tree, compiled(*a))
-            except jax.errors.JaxRuntimeError as e:
-                # A stored program that does not run here (a kernel missing from it): the
-                # exported program instead, compiled as usual; the stored one is removed.
-                if "NOT_FOUND" not in str(e):
-                    raise
-                if not fallback:
-                    compiled_path.unlink(missing_ok=True)
-                    fallback.append(self._exported(stem, a, None))
-                return fallback[0](*a)
-
-        return call
+        return _checked(compiled, out_tree, compiled_path,
+                        lambda a: self._exported(stem, a, None))
 
     def _exported(self, stem: Path, args, compiled_path: Path | None):
         """The exported program (read from `stem`, or exported and stored there) under
@@ -175,8 +161,12 @@ class StoredProgram:
         compiled = None
         if compiled_path is not None:
             compiled = _write_executable(compiled_path, program, args, out_tree)
-        run = program if compiled is None else compiled
-        return lambda *a: jax.tree_util.tree_unflatten(out_tree, run(*a))
+        def plain(*a):
+            return jax.tree_util.tree_unflatten(out_tree, program(*a))
+
+        if compiled is None:
+            return plain
+        return _checked(compiled, out_tree, None, lambda _: plain)
 
     def _export(self, stem: Path, args):
         found = []
@@ -212,7 +202,8 @@ _MACHINE = None
 
 def _machine() -> str:
     """What a compiled program is specific to beyond JAX's versions: the processor (XLA:CPU
-    compiles for the host's instruction set) and the backend's platform version."""
+    compiles for the host's instruction set), the backend's platform version, the devices
+    (their kinds and count, and the one programs run on) and XLA's flags."""
     global _MACHINE
     if _MACHINE is None:
         cpu = ""
@@ -223,9 +214,45 @@ def _machine() -> str:
                                                           "CPU part"))}))
         except OSError:
             cpu = platform.processor()
-        client = jax.devices()[0].client
-        _MACHINE = f"{platform.machine()}|{cpu}|{client.platform}|{client.platform_version}"
+        devices = jax.devices()
+        client = devices[0].client
+        _MACHINE = (f"{platform.machine()}|{cpu}|{client.platform}|{client.platform_version}|"
+                    f"{[d.device_kind for d in devices]}|{_default_device()}|"
+                    f"{os.environ.get('XLA_FLAGS', '')}")
     return _MACHINE
+
+
+def _checked(compiled, out_tree, path: Path | None, fallback):
+    """A compiled program (`jax.stages.Compiled`) called as `jax.jit` would call it: inputs
+    committed to another device are moved to the program's, and a program that does not run
+    here (XLA:CPU: a kernel missing from it, "NOT_FOUND", raised at the call or, for a
+    program run on a worker thread, when its results are read: its first call waits for
+    them) gives way to `fallback(args)`; its stored file (`path`) is removed."""
+    device = _default_device()
+    checked, replaced = False, []
+
+    def call(*a):
+        nonlocal checked
+        if replaced:
+            return replaced[0](*a)
+        try:
+            try:
+                out = compiled(*a)
+            except ValueError:  # inputs on another device
+                out = compiled(*jax.device_put(a, device))
+            if not checked:
+                jax.block_until_ready(out)
+                checked = True
+        except jax.errors.JaxRuntimeError as e:
+            if checked or "NOT_FOUND" not in str(e):
+                raise
+            if path is not None:
+                _remove(path)
+            replaced.append(fallback(a))
+            return replaced[0](*a)
+        return jax.tree_util.tree_unflatten(out_tree, out)
+
+    return call
 
 
 _CUSTOM_CALL = re.compile(r"custom_call @(\w+)|call_target_name = \"(\w+)\"")
@@ -287,8 +314,10 @@ def _read_executable(path: Path):
             from jax._src.lax.linalg import initialize_lapack  # pyright: ignore
 
             initialize_lapack()
-        compiled = serialize_executable.deserialize_and_load(payload, in_tree, flat_tree)
-    except Exception:
+        compiled = serialize_executable.deserialize_and_load(
+            payload, in_tree, flat_tree, execution_devices=[_default_device()])
+    except Exception:  # unreadable (truncated, another JAX): removed, compiled again
+        _remove(path)
         return None
     jax.monitoring.record_event_duration_secs("/jaxdyn/programs/load_duration",
                                               time.perf_counter() - start)
@@ -296,10 +325,31 @@ def _read_executable(path: Path):
 
 
 def _write(path: Path, data: bytes) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
+    """`data` written to `path` atomically (concurrent writers agree); nothing where the
+    folder cannot be written (read-only, full: the program is still used, only not kept)."""
     tmp = path.with_suffix(f"{path.suffix}.{os.getpid()}.tmp")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)  # atomic: concurrent writers agree
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp.write_bytes(data)
+        os.replace(tmp, path)
+    except OSError:
+        _remove(tmp)
+
+
+def _remove(path: Path) -> None:
+    try:
+        path.unlink(missing_ok=True)
+    except OSError:
+        pass
+
+
+def _default_device():
+    """The device jaxdyn's programs run on: JAX's default device (where `jax.jit` puts host
+    inputs)."""
+    device = jax.config.jax_default_device
+    if not isinstance(device, jax.Device):
+        device = jax.local_devices(backend=device if isinstance(device, str) else None)[0]
+    return device
 
 
 def _on_one_device(fn):
@@ -311,10 +361,7 @@ def _on_one_device(fn):
     or `jd.simulate` from `traj.y_final`, compiled each of its programs twice. Naming the
     placement makes every call the same program. (Inputs committed to another device are
     moved to the default one: jaxdyn's programs run on one device.)"""
-    device = jax.config.jax_default_device  # (where `jax.jit` puts host inputs)
-    if not isinstance(device, jax.Device):
-        device = jax.local_devices(backend=device if isinstance(device, str) else None)[0]
-    return jax.jit(fn, in_shardings=jax.sharding.SingleDeviceSharding(device))
+    return jax.jit(fn, in_shardings=jax.sharding.SingleDeviceSharding(_default_device()))
 
 
 def _weakly_typed(x):

@@ -2,6 +2,9 @@
 program instead of tracing it, gets the same numbers, and nothing is stored that could be
 stale (a structure naming code outside jaxdyn and its libraries)."""
 
+import os
+import subprocess
+import sys
 import uuid
 
 import jax
@@ -191,3 +194,57 @@ def test_a_program_held_by_the_compilation_cache_is_not_stored_compiled(stored, 
     np.testing.assert_array_equal(out["y"], out2["y"])
     if jax.config.jax_compilation_cache_dir:  # (the tests run with the cache on)
         assert not list(stored.glob("*.exe"))
+
+
+def test_stored_programs_run_on_a_machine_with_several_devices(tmp_path):
+    """With two devices (forced host devices), the stored compiled program is loaded for the
+    default device and inputs committed to the other are moved (as `jax.jit` moves them)."""
+    script = (
+        "import jax, jaxdyn as jd\n"
+        "jax.config.update('jax_enable_x64', True)\n"
+        f"jd.enable_compilation_cache({str(tmp_path)!r})\n"
+        "sc = jd.Scene(jd.FallingRod(length=1.0, mass=1.0, g=9.81))\n"
+        "y = jax.device_put(sc.state(theta=0.1), jax.devices()[-1])\n"
+        "a, b = jd.simulate(sc, sc.state(theta=0.1), 10.0), jd.simulate(sc, y, 10.0)\n"
+        "print(len(jax.devices()), repr(float(a.t_final)), repr(float(b.t_final)))\n"
+    )
+    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
+    outs = []
+    for _ in range(2):  # compiled and stored, then loaded
+        proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                              env=env, timeout=300)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        outs.append(proc.stdout.split())
+    assert list((tmp_path / "jaxdyn-programs").glob("*.exe"))
+    fall = float(jd.FallingRod(length=1.0, mass=1.0, g=9.81).fall_time(0.1, 0.0))
+    for count, a, b in outs:
+        assert count == "2" and a == b and abs(float(a) - fall) < 1e-7 * fall
+
+
+@pytest.mark.filterwarnings("ignore:Error writing persistent compilation cache")
+def test_an_unwritable_folder_or_a_damaged_file_costs_only_the_storing(stored, monkeypatch):
+    """A folder that cannot be written (read-only, full) stores nothing and the program still
+    runs; a damaged stored program is removed and the program compiled again."""
+    _programs._version()
+    monkeypatch.setattr(_programs, "_VERSION", uuid.uuid4().hex)
+    y0 = SCENE.state(theta=0.3)
+    fall = float(SCENE.body.fall_time(0.3, 0.0))
+
+    def refuse(self, data):
+        raise OSError(30, "Read-only file system")
+
+    with monkeypatch.context() as m:
+        m.setattr(type(stored), "write_bytes", refuse)
+        calls = []
+        program, leaves = _program(calls)
+        out = program(leaves, y0, np.asarray(5.0))
+        assert abs(float(out[0]) - fall) < 1e-7 * fall and not list(stored.iterdir())
+    calls = []
+    program, leaves = _program(calls)
+    program(leaves, y0, np.asarray(5.0))
+    (exe,) = stored.glob("*.exe")
+    exe.write_bytes(exe.read_bytes()[:1000])  # truncated
+    again, _ = _program(calls)
+    out = again(leaves, y0, np.asarray(5.0))
+    assert abs(float(out[0]) - fall) < 1e-7 * fall
+    assert not exe.exists() or exe.stat().st_size > 1000

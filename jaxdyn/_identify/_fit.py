@@ -318,8 +318,8 @@ def _levenberg_marquardt(problem, u0, free, ts, data, weights, tol, exact, *, ma
     the plate, which lies at infinity, while the loss keeps falling by a constant factor).
     The final stage does not use it: with a tolerance near the data's precision (float32's
     1e-5) it would stop before the estimate is as good as its reported interval; instead a
-    final stage that runs out of iterations with residuals below `tol` counts as converged
-    (`fit`)."""
+    final stage that runs out of iterations with residuals below `tol` (and the integration's
+    `rtol`) counts as converged (`fit`)."""
 
     residuals = _with_forward_jacobian(
         lambda v: problem.residuals(jnp.where(free, v, u0), ts, data, weights)
@@ -624,12 +624,19 @@ def _as_key(key):
     if key is None:
         key = 0
     if isinstance(key, int | np.integer) and not isinstance(key, bool):
+        if not -(2**63) <= int(key) < 2**63:
+            raise ParameterError(f"key={int(key)}: a seed must be a 64-bit integer")
         return _Seed(key)
-    if isinstance(key, jax.Array | np.ndarray) and (
-            jnp.issubdtype(key.dtype, jax.dtypes.prng_key)
-            or (key.dtype == np.uint32 and key.shape == (2,))):
-        return key
-    raise ParameterError(f"key={format_value(key)}: expected an integer seed or a JAX PRNG key "
+    if isinstance(key, jax.Array | np.ndarray):
+        if jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
+            if key.shape == ():
+                return key
+        elif key.dtype == np.uint32 and key.shape == jax.eval_shape(
+                jax.random.PRNGKey, 0).shape:  # (a raw key of the default implementation)
+            return key
+    shown = (f"an array of shape {key.shape} and dtype {key.dtype}"
+             if isinstance(key, jax.Array | np.ndarray) else format_value(key))
+    raise ParameterError(f"key={shown}: expected an integer seed or one JAX PRNG key "
                          "(jax.random.key(0) or jax.random.PRNGKey(0))")
 
 
@@ -979,7 +986,8 @@ def fit(
       parameterisation's `restart`. The best final loss wins.
     - `agree`: stop early once this many converged starts agree on the best loss (to a
       relative `1e-5`): the minimum has then been found from independent starts. A start
-      that fits the record exactly (the RMS of the residuals below `tol` of the data's size:
+      that fits the record exactly (the RMS of the residuals below `tol` and `rtol` of the
+      data's size:
       noise-free data, to the integration's precision) ends the search alone: no start can
       fit better.
     - `key`: a JAX PRNG key or an integer seed for the restarts.
@@ -1143,9 +1151,10 @@ def fit(
     tol_early = device_array(max(tol, 1e-4), u0.dtype)
     zero = device_array(0.0, u0.dtype)
     lr = device_array(learning_rate, u0.dtype)
-    # The loss of a fit whose residuals are all below `tol` of the data's size (see
-    # `_levenberg_marquardt`): noise-free data, at the integration's precision.
-    exact_level = 0.5 * n_obs * tol**2
+    # The loss of a fit whose residuals are all below `tol` of the data's size, and below the
+    # integration's `rtol` (a loose `tol` is a convergence criterion, not a precision): noise-
+    # free data, at the integration's precision (see `_levenberg_marquardt`).
+    exact_level = 0.5 * n_obs * min(tol, float(problem.rtol)) ** 2
 
     def _prefix(shooting):
         """The start of the record (4 x 10/W), fitted first by single shooting with its
@@ -1186,7 +1195,7 @@ def fit(
             iterations += k
         loss = float(loss)
         # A final stage that ran out of iterations where its residuals were all below `tol`
-        # of the data's size (a noise-free record, at the integration's precision) has
+        # (and `rtol`) of the data's size (a noise-free record, at the integration's precision) has
         # nothing left to fit: converged.
         ok = bool(ok) or loss <= exact_level
         return {"loss": loss if np.isfinite(loss) else np.inf, "u": u, "converged": ok,
