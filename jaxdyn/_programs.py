@@ -113,6 +113,11 @@ class StoredProgram:
         """The callable for arguments of this signature (their structure, shapes and dtypes):
         a caller that holds it skips working the signature out on each call."""
         leaves, in_tree = jax.tree_util.tree_flatten(args)
+        if any(isinstance(x, jax.core.Tracer) for x in leaves):
+            # Under the caller's transformation (`jit`, `vmap`, `grad` of a derived output of
+            # a traced trajectory): the function itself, traced (an exported program has no
+            # derivative rule, a compiled one takes concrete inputs only).
+            return self.jitted
         key = (in_tree, _signature(leaves))
         call = self.calls.get(key)
         if call is None:  # decided once per signature in a process
@@ -137,7 +142,7 @@ class StoredProgram:
             return self._exported(stem, args, compiled_path)
         compiled, out_tree = loaded
         return _checked(compiled, out_tree, compiled_path,
-                        lambda a: self._exported(stem, a, None))
+                        lambda a: self._exported(stem, a, None), self.jitted)
 
     def _exported(self, stem: Path, args, compiled_path: Path | None):
         """The exported program (read from `stem`, or exported and stored there) under
@@ -166,7 +171,7 @@ class StoredProgram:
 
         if compiled is None:
             return plain
-        return _checked(compiled, out_tree, None, lambda _: plain)
+        return _checked(compiled, out_tree, None, lambda _: plain, self.jitted)
 
     def _export(self, stem: Path, args):
         found = []
@@ -222,19 +227,25 @@ def _machine() -> str:
     return _MACHINE
 
 
-def _checked(compiled, out_tree, path: Path | None, fallback):
+def _checked(compiled, out_tree, path: Path | None, fallback, traced):
     """A compiled program (`jax.stages.Compiled`) called as `jax.jit` would call it: inputs
-    committed to another device are moved to the program's, and a program that does not run
-    here (XLA:CPU: a kernel missing from it, "NOT_FOUND", raised at the call or, for a
-    program run on a worker thread, when its results are read: its first call waits for
-    them) gives way to `fallback(args)`; its stored file (`path`) is removed."""
+    committed to another device are moved to the program's; traced inputs (a caller's `jit`,
+    `vmap` or `grad`) go to `traced`, the function itself; and a program that does not run
+    here (XLA:CPU: a kernel missing from it, "NOT_FOUND", raised at
+    the call or, for a program run on a worker thread, when its results are read: its first
+    call waits for them) is replaced by the fallback, and its stored file (`path`) removed."""
     device = _default_device()
-    checked, replaced = False, []
+    checked, broken, other = False, False, []
+
+    def traceable(a):
+        if not other:
+            other.append(fallback(a))
+        return other[0]
 
     def call(*a):
-        nonlocal checked
-        if replaced:
-            return replaced[0](*a)
+        nonlocal checked, broken
+        if broken:
+            return traceable(a)(*a)
         try:
             try:
                 out = compiled(*a)
@@ -243,13 +254,17 @@ def _checked(compiled, out_tree, path: Path | None, fallback):
             if not checked:
                 jax.block_until_ready(out)
                 checked = True
+        except TypeError as e:
+            if "Cannot apply JAX transformations" not in str(e):
+                raise
+            return traced(*a)
         except jax.errors.JaxRuntimeError as e:
             if checked or "NOT_FOUND" not in str(e):
                 raise
             if path is not None:
                 _remove(path)
-            replaced.append(fallback(a))
-            return replaced[0](*a)
+            broken = True
+            return traceable(a)(*a)
         return jax.tree_util.tree_unflatten(out_tree, out)
 
     return call
