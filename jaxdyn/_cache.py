@@ -3,7 +3,9 @@
 Compiled programs are written to a directory and reused by later processes, so the second
 `jaxdyn run` (or the second kernel start of a notebook) skips compilation. jaxdyn's public
 programs carry no host callbacks (failures come back as outcome codes, raised on the host),
-so JAX can cache every one of them.
+so JAX can cache every one of them. Beside JAX's entries, `jaxdyn-programs/` keeps the
+programs jaxdyn builds once per structure, exported and compiled for this machine
+(`jaxdyn._programs`), which a later process loads without tracing them again.
 """
 
 import os
@@ -35,7 +37,8 @@ def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path | No
     **Returns:**
 
     The directory in use, or `None` where the cache stays off. Every program is cached
-    however quickly it compiled (JAX's default keeps only those above one second).
+    however quickly it compiled (JAX's default keeps only those above one second); jaxdyn's
+    own programs are also kept there, in `jaxdyn-programs/`, compiled for this machine.
     """
     import sys
 
