@@ -62,7 +62,6 @@ import diffrax as dfx
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import numpy as np
 import optimistix as optx
 from jaxtyping import Array
 
@@ -295,14 +294,15 @@ class _Run:
             # A state of several leaves integrated as one array: every state operation of the
             # stages and of the error norm is one kernel, not one per variable (the falling
             # rod's two scalars: 40 kernels per step against 27).
-            y_start, unravel = _ravel(y_s), _unraveller(y_s)
-            vector_field = term.vector_field
-            term = dfx.ODETerm(lambda t, y, args: _ravel(vector_field(t, unravel(y), args)))
-            controller = eqx.tree_at(lambda c: c.scales, controller, _ravel(controller.scales))
+            unravel = _Unravel.like(y_s)
+            y_start = _ravel(y_s)
+            term = dfx.ODETerm(_Raveled(term.vector_field, unravel))
+            scales = jax.tree.map(lambda s, y: jnp.broadcast_to(s, jnp.shape(y)),
+                                  controller.scales, y_s)  # (one scale per variable)
+            controller = eqx.tree_at(lambda c: c.scales, controller, _ravel(scales))
             if event is not None:
-                cond = event.cond_fn
                 event = eqx.tree_at(lambda e: e.cond_fn, event,
-                                    lambda t, y, args, **kw: cond(t, unravel(y), args, **kw))
+                                    _Raveled(event.cond_fn, unravel, output=False))
         sol = dfx.diffeqsolve(
             term, solver, start, stop, dt0, y_start,
             args=self.scene,  # solvers that exploit the scene's structure (splittings) read it
@@ -474,17 +474,37 @@ def _ravel(y):
     return jnp.concatenate([jnp.ravel(a) for a in jax.tree.leaves(y)])
 
 
-def _unraveller(like):
-    """The inverse of `_ravel` for states shaped as `like`."""
-    leaves, treedef = jax.tree.flatten(like)
-    shapes = [jnp.shape(a) for a in leaves]
-    ends = np.cumsum([math.prod(s) for s in shapes])
+class _Unravel(eqx.Module):
+    """The inverse of `_ravel` for states shaped as a given one (static)."""
 
-    def unravel(flat):
-        return jax.tree.unflatten(treedef, [flat[e - math.prod(s):e].reshape(s)
-                                            for s, e in zip(shapes, ends)])
+    treedef: Any = eqx.field(static=True)
+    shapes: tuple = eqx.field(static=True)
 
-    return unravel
+    @staticmethod
+    def like(y) -> "_Unravel":
+        leaves, treedef = jax.tree.flatten(y)
+        return _Unravel(treedef, tuple(tuple(jnp.shape(a)) for a in leaves))
+
+    def __call__(self, flat):
+        parts, at = [], 0
+        for shape in self.shapes:
+            size = math.prod(shape)
+            parts.append(flat[at:at + size].reshape(shape))
+            at += size
+        return jax.tree.unflatten(self.treedef, parts)
+
+
+class _Raveled(eqx.Module):
+    """`fn(t, y, args, ...)` of a state pytree as a function of the raveled state (its output
+    raveled too where `output`): a module, so that adjoints see the parameters it holds."""
+
+    fn: Any
+    unravel: _Unravel
+    output: bool = eqx.field(static=True, default=True)
+
+    def __call__(self, t, y, args, **kwargs):
+        out = self.fn(t, self.unravel(y), args, **kwargs)
+        return _ravel(out) if self.output else out
 
 
 def _expand(mask, like):
