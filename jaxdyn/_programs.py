@@ -142,7 +142,7 @@ class StoredProgram:
             return self._exported(stem, args, compiled_path)
         compiled, out_tree = loaded
         return _checked(compiled, out_tree, compiled_path,
-                        lambda a: self._exported(stem, a, None), self.jitted)
+                        lambda a: self._exported(stem, a, None))
 
     def _exported(self, stem: Path, args, compiled_path: Path | None):
         """The exported program (read from `stem`, or exported and stored there) under
@@ -161,17 +161,17 @@ class StoredProgram:
             return [_weakly_typed(x) if w else x for x, w in zip(outs, weak)]
 
         # Named with jaxdyn's version: JAX's persistent cache then never holds the program
-        # from an earlier version (its executable could not be stored: `_write_executable`).
+        # from an earlier version (its executable could not be stored: `_compile_and_store`).
         program = _on_one_device(_named(call, self.fn, _version()[:10]))
-        compiled = None
-        if compiled_path is not None:
-            compiled = _write_executable(compiled_path, program, args, out_tree)
+
         def plain(*a):
             return jax.tree_util.tree_unflatten(out_tree, program(*a))
 
+        compiled = (None if compiled_path is None
+                    else _compile_and_store(compiled_path, program, args, out_tree))
         if compiled is None:
             return plain
-        return _checked(compiled, out_tree, None, lambda _: plain, self.jitted)
+        return _checked(compiled, out_tree, None, lambda _: plain)
 
     def _export(self, stem: Path, args):
         found = []
@@ -227,25 +227,20 @@ def _machine() -> str:
     return _MACHINE
 
 
-def _checked(compiled, out_tree, path: Path | None, fallback, traced):
-    """A compiled program (`jax.stages.Compiled`) called as `jax.jit` would call it: inputs
-    committed to another device are moved to the program's; traced inputs (a caller's `jit`,
-    `vmap` or `grad`) go to `traced`, the function itself; and a program that does not run
-    here (XLA:CPU: a kernel missing from it, "NOT_FOUND", raised at
-    the call or, for a program run on a worker thread, when its results are read: its first
-    call waits for them) is replaced by the fallback, and its stored file (`path`) removed."""
+def _checked(compiled, out_tree, path: Path | None, fallback):
+    """A compiled program (`jax.stages.Compiled`) called as `jax.jit` would call it, with
+    concrete inputs (`resolve` hands traced ones to the function itself): inputs committed to
+    another device are moved to the program's; and a program that does not run here (XLA:CPU:
+    a kernel missing from it, "NOT_FOUND", raised at the call or, for a program run on a
+    worker thread, when its results are read: its first call waits for them) is replaced by
+    `fallback(args)`, and its stored file (`path`) removed."""
     device = _default_device()
-    checked, broken, other = False, False, []
-
-    def traceable(a):
-        if not other:
-            other.append(fallback(a))
-        return other[0]
+    checked, replacement = False, None
 
     def call(*a):
-        nonlocal checked, broken
-        if broken:
-            return traceable(a)(*a)
+        nonlocal checked, replacement
+        if replacement is not None:
+            return replacement(*a)
         try:
             try:
                 out = compiled(*a)
@@ -254,17 +249,13 @@ def _checked(compiled, out_tree, path: Path | None, fallback, traced):
             if not checked:
                 jax.block_until_ready(out)
                 checked = True
-        except TypeError as e:
-            if "Cannot apply JAX transformations" not in str(e):
-                raise
-            return traced(*a)
         except jax.errors.JaxRuntimeError as e:
             if checked or "NOT_FOUND" not in str(e):
                 raise
             if path is not None:
                 _remove(path)
-            broken = True
-            return traceable(a)(*a)
+            replacement = fallback(a)
+            return replacement(*a)
         return jax.tree_util.tree_unflatten(out_tree, out)
 
     return call
@@ -273,14 +264,15 @@ def _checked(compiled, out_tree, path: Path | None, fallback, traced):
 _CUSTOM_CALL = re.compile(r"custom_call @(\w+)|call_target_name = \"(\w+)\"")
 
 
-def _write_executable(path: Path, program, args, out_tree):
-    """`program` compiled for `args`, and stored at `path` as this machine's compiled program
-    (a later process loads it without tracing, lowering or compiling: `_read_executable`).
-    `None` where it cannot be (the program is then called as usual). Not stored where JAX's
-    persistent cache held the program (an earlier version of jaxdyn compiled the same one):
-    XLA:CPU's executable deserialised from that cache serialises without its kernels
-    ("Function ... not found" when run; measured with jax 0.10), so only a fresh compilation
-    is stored (JAX's cache serves that program as before)."""
+def _compile_and_store(path: Path, program, args, out_tree):
+    """`program` compiled for `args` (`None` where it cannot be: it is then called as usual),
+    and stored at `path` as this machine's compiled program where that is safe (a later
+    process loads it without tracing, lowering or compiling: `_read_executable`). Not stored
+    where JAX's persistent cache held the program (an earlier version of jaxdyn compiled the
+    same one): XLA:CPU's executable deserialised from that cache serialises without its
+    kernels ("Function ... not found" when run; measured with jax 0.10), so only a fresh
+    compilation is stored; nor where it calls custom kernels other than LAPACK's (only those
+    are known to be set up on loading, below)."""
     hits = []
 
     def listen(event, **kwargs):
@@ -288,29 +280,29 @@ def _write_executable(path: Path, program, args, out_tree):
             hits.append(event)
 
     try:
-        from jax.experimental import serialize_executable
-
         lowered = program.lower(*args)
-        targets = {a or b for a, b in _CUSTOM_CALL.findall(lowered.as_text())}
-        if any(not t.startswith("lapack_") for t in targets):
-            return None  # only LAPACK's kernels are known to be set up on loading (below)
         jax.monitoring.register_event_listener(listen)
         try:
             compiled = lowered.compile()
         finally:
             jax.monitoring.unregister_event_listener(listen)
-        if hits:
-            return compiled
-        blob = pickle.dumps((serialize_executable.serialize(compiled), out_tree,
-                             bool(targets)))
-    except Exception:  # not serialisable: called as usual
+    except Exception:  # called as usual
         return None
-    _write(path, blob)
+    targets = {a or b for a, b in _CUSTOM_CALL.findall(lowered.as_text())}
+    if not hits and all(t.startswith("lapack_") for t in targets):
+        try:
+            from jax.experimental import serialize_executable
+
+            blob = pickle.dumps((serialize_executable.serialize(compiled), out_tree,
+                                 bool(targets)))
+        except Exception:  # not serialisable: used, not kept
+            return compiled
+        _write(path, blob)
     return compiled
 
 
 def _read_executable(path: Path):
-    """The compiled program stored by `_write_executable` and the tree of its outputs, or
+    """The compiled program stored by `_compile_and_store` and the tree of its outputs, or
     `None` (not stored, unreadable, or not loadable by this JAX)."""
     import time
 

@@ -614,19 +614,16 @@ def _rms_by_output(sums, obs, sigmas, kinds):
             for (name, d), sigma, kind in zip(obs.items(), sigmas, kinds)}
 
 
-class _Seed(int):
-    """An integer seed, made a JAX key where it is used (`jax.random.PRNGKey` is two compiled
-    programs, which a fit that needs no random numbers does not load)."""
-
-
 def _as_key(key):
-    """`key` checked: a JAX PRNG key, or an integer seed (`None`: 0)."""
+    """`key` checked: a JAX PRNG key, or an integer seed (`None`: 0), kept as a Python `int`
+    until a key is needed (`_key`: `jax.random.PRNGKey` is two compiled programs, which a fit
+    that needs no random numbers does not load)."""
     if key is None:
         key = 0
     if isinstance(key, int | np.integer) and not isinstance(key, bool):
         if not -(2**63) <= int(key) < 2**63:
             raise ParameterError(f"key={int(key)}: a seed must be a 64-bit integer")
-        return _Seed(key)
+        return int(key)
     if isinstance(key, jax.Array | np.ndarray):
         if jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
             if key.shape == ():
@@ -642,7 +639,7 @@ def _as_key(key):
 
 def _key(key):
     """A JAX key of `_as_key`'s value."""
-    return jax.random.PRNGKey(int(key)) if isinstance(key, _Seed) else key
+    return jax.random.PRNGKey(key) if isinstance(key, int) else key
 
 
 def _dtype(ts, data):
@@ -987,9 +984,8 @@ def fit(
     - `agree`: stop early once this many converged starts agree on the best loss (to a
       relative `1e-5`): the minimum has then been found from independent starts. A start
       that fits the record exactly (the RMS of the residuals below `tol` and `rtol` of the
-      data's size:
-      noise-free data, to the integration's precision) ends the search alone: no start can
-      fit better.
+      data's size: noise-free data, to the integration's precision) ends the search alone:
+      no start can fit better.
     - `key`: a JAX PRNG key or an integer seed for the restarts.
     - `method`: `"lm"` (Levenberg--Marquardt from optimistix's damped Newton descent and
       trust region; default) or `"lbfgs"` (optax's L-BFGS with a zoom line search).
@@ -1195,8 +1191,8 @@ def fit(
             iterations += k
         loss = float(loss)
         # A final stage that ran out of iterations where its residuals were all below `tol`
-        # (and `rtol`) of the data's size (a noise-free record, at the integration's precision) has
-        # nothing left to fit: converged.
+        # (and `rtol`) of the data's size (a noise-free record, at the integration's
+        # precision) has nothing left to fit: converged.
         ok = bool(ok) or loss <= exact_level
         return {"loss": loss if np.isfinite(loss) else np.inf, "u": u, "converged": ok,
                 "iterations": iterations, "history": np.concatenate(history),
@@ -1258,10 +1254,7 @@ def fit(
                 losses = np.array([run["loss"] for run in runs])
                 if runs[-1]["converged"] and runs[-1]["loss"] <= exact_level:
                     break  # exact to `tol`: the global minimum (see `agree`)
-                # Fits exact to `tol` agree whatever their losses below that level.
-                exact = losses.min() <= exact_level
-                agreeing = [run["converged"] and (run["loss"] <= losses.min() * (1 + 1e-5)
-                                                  or (exact and run["loss"] <= exact_level))
+                agreeing = [run["converged"] and run["loss"] <= losses.min() * (1 + 1e-5)
                             for run in runs]
                 if sum(agreeing) >= agree:
                     break
