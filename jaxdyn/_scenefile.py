@@ -154,7 +154,11 @@ def load_scene(name_or_path: str, overrides: Mapping[str, Any] | None = None) ->
                              f"{sorted(_TOP_KEYS)}")
     kind = data.get("body")
     if not isinstance(kind, str) or kind not in bodies:
-        raise ParameterError(f"body={short_value(kind)}: allowed are {sorted(bodies)}")
+        # (A table here is the body's parameters in the wrong place: said so.)
+        where = ("; the body's values go in the [parameters] table"
+                 if isinstance(kind, dict) else "")
+        raise ParameterError(f"body={short_value(kind)}: expected the name of a body, one of "
+                             f"{sorted(bodies)}{where}")
     body_cls = bodies[kind]
     params = data.get("parameters", {})
     if not isinstance(params, dict):

@@ -67,6 +67,9 @@ def as_rows(field: str, value, dtype=None):
     arr = arr[None] if arr.ndim == 1 else arr
     if arr.ndim != 2 or arr.shape[1] != 3:
         raise ParameterError(f"{field} has shape {arr.shape}: expected (N, 3)")
+    if arr.shape[0] == 0:  # (a scene without such devices leaves the effect out)
+        raise ParameterError(f"{field} has shape {arr.shape}: expected (N, 3) with N >= 1, "
+                             "one row per device")
     return arr
 
 

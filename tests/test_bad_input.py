@@ -50,6 +50,10 @@ API = [
      "needs a function"),
     ("GravityGradient rate", lambda: jd.GravityGradient(orbit_rate=-1.0),
      "gravity-gradient.orbit_rate=-1: must be positive"),
+    ("Wheels none", lambda: jd.Wheels(axes=np.zeros((0, 3)), inertia=np.zeros(0)),
+     "wheels.axes has shape (0, 3): expected (N, 3) with N >= 1"),
+    ("Thrusters none", lambda: jd.Thrusters(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)),
+     "thrusters.positions has shape (0, 3): expected (N, 3) with N >= 1"),
     # scenes and states
     ("Scene body", lambda: jd.Scene("a rod"), "expected a jaxdyn body"),
     ("Scene effect", lambda: jd.Scene(BODY, ("spin",)), "expected jaxdyn effects"),
@@ -142,7 +146,9 @@ def test_solver_choice_errors_are_clear():
 BAD_TOML = {
     "malformed": ("body = 'rigid-body\n", "malformed TOML"),
     "unknown key": ('body = "rigid-body"\ncolour = 3\n', "unknown key"),
-    "unknown body": ('body = "pendulum"\n', "body='pendulum'"),
+    "unknown body": ('body = "pendulum"\n', "body='pendulum': expected the name of a body"),
+    "body as a table": ('[body]\nkind = "rigid-body"\ninertia = [1, 2, 3]\n',
+                        "the body's values go in the [parameters] table"),
     "unknown parameter": ('body = "falling-rod"\n[parameters]\nlength = 1.0\ntheta0 = 0.1\n'
                           'spin = 2\n', "unknown parameter 'spin'"),
     "wrong type": ('body = "falling-rod"\n[parameters]\nlength = "long"\ntheta0 = 0.1\n',

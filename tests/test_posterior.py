@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
+from scipy.stats import norm
 from test_identify import FIT_BODY, SAMPLES, euler_rates
 
 import jaxdyn as jd
@@ -168,12 +169,19 @@ def test_posterior_near_equal_moments_and_a_flat_plate_agrees_with_importance_sa
         return np.stack([m[:, 0], m[:, 1], m[:, 0] + m[:, 1] - 1], 1)  # the last: plate
 
     ref, got = quantities(tensors), quantities(res.posterior["inertia"])
+    # Monte Carlo standard errors of the quantiles, of the draws (their smallest effective
+    # sample size) and of the reference (Kish's effective size of the weights), from the
+    # normal approximation `sqrt(p (1 - p) / ess) / density`: for the 5 % quantile about
+    # 0.2 sigma of 100 effective draws. The bound, 3.5 combined errors, is about 0.8 sigma
+    # (a bound of 0.4 sigma, two errors, failed on about a third of the keys, before and
+    # after the change of 25 Nov 2026 that only moved the draws by round-off).
+    p = np.array([0.05, 0.5, 0.95])
+    per_draw = np.sqrt(p * (1 - p)) / (np.exp(-0.5 * norm.ppf(p) ** 2) / np.sqrt(2 * np.pi))
+    error = per_draw * np.sqrt(1 / diag["min_ess"] + np.sum(weights**2))
     for k in range(3):
         order = np.argsort(ref[:, k])
         cdf = np.cumsum(weights[order])
-        q_ref = ref[order, k][np.searchsorted(cdf, [0.05, 0.5, 0.95])]
-        q_got = np.quantile(got[:, k], [0.05, 0.5, 0.95])
+        q_ref = ref[order, k][np.searchsorted(cdf, p)]
+        q_got = np.quantile(got[:, k], p)
         sd = np.sqrt(np.sum(weights * (ref[:, k] - np.sum(weights * ref[:, k])) ** 2))
-        # Monte Carlo error of a 5 % quantile of 200 correlated draws (an effective sample
-        # size of 100 or more): about 0.2 sigma; of the reference's, less.
-        assert np.all(np.abs(q_got - q_ref) < 0.4 * sd), (k, q_got, q_ref, sd)
+        assert np.all(np.abs(q_got - q_ref) < 3.5 * error * sd), (k, q_got, q_ref, sd, error)

@@ -10,7 +10,9 @@ branches on the kind of scene.
 Residuals are $r_k(u) = (y(t_k; u) - d_k)/\sigma$ over the samples, with $u$ the unconstrained
 vector of every fitted quantity. Uncertainties are the Gauss--Newton covariance
 $s^2 (J^T J)^{-1}$ at the optimum, with $s^2 = |r|^2 / (n_\mathrm{obs} - n_\mathrm{free})$,
-propagated to the reported quantities with the Jacobian of their map from $u$.
+propagated to the reported quantities with the Jacobian of their map from $u$; computed from
+the singular values of $J$ (its columns scaled), never by inverting $J^T J$, whose condition
+number is the square of $J$'s (see `_uncertainty`).
 
 Choices, measured on the torque-free fit of `benchmarks/identify.py` (200 samples of three
 rates, 6-9 unknowns, CPU):
@@ -420,38 +422,60 @@ def _summaries(problem, u, free):
 
 
 @stored_filter_jit
-def _uncertainty(problem, u, free, H, rss, n_obs):
+def _uncertainty(problem, u, free, R, rss, n_obs):
     """Gauss--Newton covariance of `u` and the 1-sigma intervals of the reported summaries,
-    from the normal matrix `H = J^T J` and the residual sum of squares `rss` at the optimum
-    `u` (both from the whole record, however they were accumulated)."""
+    from a square root `R` of the normal matrix (`R^T R = J^T J`: the triangle of `J`'s QR
+    decomposition, or `_root(H)`) and the residual sum of squares `rss` at the optimum `u`
+    (both from the whole record, however they were accumulated).
+
+    Everything comes from the singular value decomposition of `R` with its free columns
+    scaled to unit norm, never from inverting `J^T J`: that squares the condition number,
+    and where a shape logit of a near-flat plate runs off to infinity (condition number
+    1e8, ordinary) the inverse of `J^T J` is round-off, its variances came out negative and
+    the intervals zero. A variance is a sum of squares here, so it cannot be negative; a
+    direction whose singular value is zero to working precision is left out of the
+    covariance (a pseudo-inverse), and a quantity that depends on it has no interval."""
     dtype = u.dtype
-    fixed = jnp.where(free, 0.0, 1.0).astype(dtype)
-    H = jnp.where(free[:, None] & free[None, :], H.astype(dtype), 0.0)
+    eps = jnp.finfo(dtype).eps
+    R = jnp.where(free[None, :], R.astype(dtype), 0.0)
     dof = jnp.maximum(n_obs - jnp.sum(free), 1).astype(dtype)
     s2 = rss.astype(dtype) / dof
-    cov = jnp.where(free[:, None] & free[None, :], s2 * jnp.linalg.inv(H + jnp.diag(fixed)),
-                    0.0)
+    norms = jnp.sqrt(jnp.sum(R**2, axis=0))
+    d = jnp.where(norms > 0, 1.0 / jnp.where(norms > 0, norms, 1.0), 0.0)
+    _, sv, vt = jnp.linalg.svd(R * d[None, :], full_matrices=False)
+    resolved = sv > u.shape[0] * eps * sv[0]
+    inv_sv = jnp.where(resolved, 1.0 / jnp.where(resolved, sv, 1.0), 0.0)
+    W = (vt * inv_sv[:, None]) * d[None, :]  # rows: directions of u over their singular values
+    cov = s2 * (W.T @ W)
     values = _summaries(problem, u, free)
     G = jax.jacfwd(_summaries, argnums=1)(problem, u, free)
-    eps = jnp.finfo(dtype).eps
     std = {}
     for key, g in G.items():
         g = g.reshape(-1, u.shape[0]).astype(dtype)
-        var = jnp.einsum("ij,jk,ik->i", g, cov, g)
-        # A quantity that depends on a component kept fixed (not identifiable) has no interval.
+        var = s2 * jnp.sum((g @ W.T) ** 2, axis=1)
+        scale = jnp.max(jnp.abs(g * d[None, :]), axis=1, keepdims=True)
+        # A quantity that depends on a component kept fixed, or on a direction the data do
+        # not determine at all (a zero singular value), has no interval.
         on_fixed = jnp.max(jnp.abs(jnp.where(free, 0.0, g)), axis=1)
-        undetermined = on_fixed > jnp.sqrt(eps) * jnp.max(jnp.abs(g))
-        sd = jnp.where(undetermined, jnp.nan, jnp.sqrt(jnp.maximum(var, 0.0)))
+        on_null = jnp.max(jnp.where(resolved, 0.0, jnp.abs((g * d[None, :]) @ vt.T)), axis=1)
+        undetermined = ((on_fixed > jnp.sqrt(eps) * jnp.max(jnp.abs(g)))
+                        | (on_null > jnp.sqrt(eps) * scale[:, 0]))
+        sd = jnp.where(undetermined, jnp.nan, jnp.sqrt(var))
         std[key] = sd.reshape(values[key].shape).astype(values[key].dtype)
-    # Conditioning of the free columns scaled to unit norm: a tiny singular value is a
-    # combination of components that the data do not determine. (The singular values of the
-    # scaled Jacobian are the square roots of the eigenvalues of the scaled normal matrix.)
-    norms = jnp.sqrt(jnp.diag(H))
-    d = jnp.where(norms > 0, 1.0 / norms, 0.0)
-    lam, vecs = jnp.linalg.eigh(d[:, None] * H * d[None, :])
-    sv = jnp.sqrt(jnp.maximum(lam[::-1], 0.0))
-    vt = vecs[:, ::-1].T
+    # `sv` and `vt`: the conditioning of the free columns scaled to unit norm (a tiny singular
+    # value is a combination of components that the data do not determine).
     return cov, values, std, s2, sv, vt
+
+
+@stored_filter_jit
+def _root(H):
+    """A square root `R` of a normal matrix (`R^T R = H`), for `_uncertainty` where only `H`
+    is at hand (multiple shooting condenses its normal matrix): from the eigenvalues of `H`
+    with its columns scaled to unit diagonal (negative round-off clipped to zero)."""
+    norms = jnp.sqrt(jnp.maximum(jnp.diag(H), 0.0))
+    d = jnp.where(norms > 0, 1.0 / jnp.where(norms > 0, norms, 1.0), 0.0)
+    lam, vecs = jnp.linalg.eigh(d[:, None] * H * d[None, :])
+    return (jnp.sqrt(jnp.maximum(lam, 0.0))[:, None] * vecs.T) * norms[None, :]
 
 
 # -- public API -----------------------------------------------------------------------------
@@ -1036,7 +1060,7 @@ def fit(
     - `chains`: the number of NUTS chains (run side by side, started dispersed around the
       optimum; `posterior` draws in all, each chain after its own `warmup`). Their
       agreement is checked (split R-hat in `FitResult.posterior_diagnostics`; a warning when
-      they disagree). Default 4.
+      they disagree, and when a chain is stuck: mean acceptance below 0.3). Default 4.
 
     Long records are fitted by multiple shooting: the state at the start of each segment is
     an unknown of its own, started from the data where they measure it (gyro rates less the
@@ -1268,17 +1292,18 @@ def fit(
         loss, u = best["loss"], best["u"]
 
         def normal_and_sums(best, u):
-            """The normal matrix, residual sum of squares and sums by output at the optimum, and
-            the residuals of each output over the samples `(N, width)`."""
+            """A square root of the normal matrix (see `_uncertainty`), the residual sum of
+            squares and the sums by output at the optimum, and the residuals of each output
+            over the samples `(N, width)`."""
             if "H" in best:  # multiple shooting's own normal matrix
                 sums = dict(zip(outputs, (float(x) for x in best["ss"])))
-                return best["H"], jnp.asarray(sum(sums.values())), sums, best["series"]
+                return _root(best["H"]), jnp.asarray(sum(sums.values())), sums, best["series"]
             r, J = _jacobian(problem, u, ts_p, obs_p, weights)
             series = _series_by_output(np.asarray(r), obs, ts_p.size, problem.kinds)
             sums = {k: float(np.sum(v**2)) for k, v in series.items()}  # (padding weighs 0)
-            return J.T @ J, jnp.sum(r**2), sums, series
+            return jnp.linalg.qr(J, mode="r"), jnp.sum(r**2), sums, series
 
-        H, rss, sums, series = normal_and_sums(best, u)
+        R, rss, sums, series = normal_and_sums(best, u)
         if reweight and len(outputs) > 1:
             # Weight each output by its own residual scale, and refit from the optimum (the
             # same compiled functions: `sigma` is an array of the problem).
@@ -1294,7 +1319,7 @@ def fit(
                                                      for s_ in again["stages"]),
                     "iterations": best["iterations"] + again["iterations"]}
             loss, u = best["loss"], best["u"]
-            H, rss, sums, series = normal_and_sums(best, u)
+            R, rss, sums, series = normal_and_sums(best, u)
         rms_by_output = _rms_by_output(sums, obs, problem.sigma, problem.kinds)
         whiteness = _whiteness(series)
         floors = {k: _MATERIAL * float(problem.rtol) * _data_scale(obs[k], kind)
@@ -1303,7 +1328,7 @@ def fit(
         loss0 = 0.5 * sum(sums[k] * float(np.max(np.asarray(sg)) / np.max(
             np.asarray(sg0))) ** 2 for k, sg, sg0 in zip(outputs, problem.sigma,
                                                           setup.problem.sigma))
-        return dict(best=best, runs=runs, problem=problem, loss=loss, u=u, H=H, rss=rss,
+        return dict(best=best, runs=runs, problem=problem, loss=loss, u=u, R=R, rss=rss,
                     sums=sums, rms_by_output=rms_by_output, whiteness=whiteness,
                     systematic=systematic, loss0=loss0,
                     segments=1 if shooting is None else shooting.segments)
@@ -1325,10 +1350,10 @@ def fit(
                           and second["loss0"] < first["loss0"]))
             fitted = second if better else first
     best, runs, problem = fitted["best"], fitted["runs"], fitted["problem"]
-    loss, u, H, rss, sums = (fitted[k] for k in ("loss", "u", "H", "rss", "sums"))
+    loss, u, R, rss, sums = (fitted[k] for k in ("loss", "u", "R", "rss", "sums"))
     rms_by_output, whiteness, systematic = (fitted[k] for k in ("rms_by_output", "whiteness",
                                                                 "systematic"))
-    cov, values, std, s2, sv, vt = _uncertainty(problem, u, free, H, rss, n_obs)
+    cov, values, std, s2, sv, vt = _uncertainty(problem, u, free, R, rss, n_obs)
 
     draws, acceptance, leapfrogs, report = None, None, None, None
     if posterior:

@@ -47,6 +47,7 @@ import jax.numpy as jnp
 import numpy as np
 
 RHAT_MAX = 1.05  # above this split R-hat, the chains disagree: a warning
+ACCEPTANCE_MIN = 0.3  # below this mean acceptance rate (NUTS aims at 0.8), a chain is stuck
 DISPERSION = 2.0  # chains start at this many Gauss--Newton standard deviations
 
 
@@ -237,5 +238,16 @@ def sample(problem, u, free, u_start, ts, data, weights, s2, cov, key, summaries
             f"{RHAT_MAX}: {bad}); "
             "the draws are not yet a sample of the posterior. Sample longer (larger warmup= "
             "and posterior=), or compare with the Gauss-Newton intervals (FitResult.std).",
+            RuntimeWarning, stacklevel=3)
+    stuck = {i: round(a, 3) for i, a in enumerate(report["acceptance"])
+             if not a >= ACCEPTANCE_MIN}
+    if stuck:
+        # (The split R-hat can miss it: a chain that hardly moves has almost no spread of
+        # its own.)
+        warnings.warn(
+            f"posterior: chain(s) {sorted(stuck)} accepted almost none of their proposals "
+            f"(mean acceptance {stuck}, below {ACCEPTANCE_MIN}; NUTS aims at 0.8): their "
+            "draws repeat a few points and are not a sample of the posterior. Sample again "
+            "with another key=, or longer (larger warmup=).",
             RuntimeWarning, stacklevel=3)
     return out, report
