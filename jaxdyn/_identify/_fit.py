@@ -454,9 +454,10 @@ def _uncertainty(problem, u, free, R, rss, n_obs):
         g = g.reshape(-1, u.shape[0]).astype(dtype)
         var = s2 * jnp.sum((g @ W.T) ** 2, axis=1)
         scale = jnp.max(jnp.abs(g * d[None, :]), axis=1, keepdims=True)
-        # A quantity that depends on a component kept fixed, or on a direction the data do
-        # not determine at all (a zero singular value), has no interval.
-        on_fixed = jnp.max(jnp.abs(jnp.where(free, 0.0, g)), axis=1)
+        # A quantity that depends on a component kept fixed (or free but with a zero column:
+        # multiple shooting's normal matrix of a near-flat plate has such rows), or on a
+        # direction the data do not determine at all (a zero singular value), has no interval.
+        on_fixed = jnp.max(jnp.abs(jnp.where(free & (norms > 0), 0.0, g)), axis=1)
         on_null = jnp.max(jnp.where(resolved, 0.0, jnp.abs((g * d[None, :]) @ vt.T)), axis=1)
         undetermined = ((on_fixed > jnp.sqrt(eps) * jnp.max(jnp.abs(g)))
                         | (on_null > jnp.sqrt(eps) * scale[:, 0]))
