@@ -271,6 +271,13 @@ def test_length_and_g_together_are_a_combination():
     assert any("only a combination of length, g" in n for n in res.notes), res.notes
     ratio = float(res.values["g"]) / float(res.values["length"])
     assert ratio == pytest.approx(9.81 / length, rel=0.02)
+    # Neither alone has an interval, nor a covariance (the inverse of J^T J gave numbers
+    # from round-off there: 6.5e8, -1.6e9, -4e22 for log length over three seeds).
+    index = {c: i for i, c in enumerate(res.components)}
+    cov = np.asarray(res.covariance)
+    assert np.isnan(res.std["length"]) and np.isnan(res.std["g"])
+    assert np.isnan(cov[index["length"], index["length"]])
+    assert np.isfinite(cov[index["theta"], index["theta"]]) and np.isfinite(res.std["theta"])
 
 
 # -- coverage -----------------------------------------------------------------------------------

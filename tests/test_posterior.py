@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 from scipy.stats import norm
-from test_identify import FIT_BODY, SAMPLES, euler_rates
+from test_identify import FIT_BODY, SAMPLES, euler_rates, rod_case
 
 import jaxdyn as jd
 
@@ -185,3 +185,26 @@ def test_posterior_near_equal_moments_and_a_flat_plate_agrees_with_importance_sa
         q_got = np.quantile(got[:, k], p)
         sd = np.sqrt(np.sum(weights * (ref[:, k] - np.sum(weights * ref[:, k])) ** 2))
         assert np.all(np.abs(q_got - q_ref) < 3.5 * error * sd), (k, q_got, q_ref, sd, error)
+
+
+def test_a_direction_the_data_do_not_determine_keeps_the_priors_spread():
+    """A rod's length and g both fitted: the data determine g / length only. Along
+    log length + log g the posterior is the prior's (standard deviation 10 in each log
+    around the start: log length then spreads 10 / sqrt(2) = 7.1 given the ratio), while
+    g / length is the data's. (With the pseudo-inverse's zero variance along that direction
+    as the mass matrix, the chains started together there and hardly moved: log length
+    spread 0.001, unnoticed by R-hat.)"""
+    rng = np.random.default_rng(5301)
+    length, theta0, theta_dot0, ts, angles = rod_case(rng)
+    scene = jd.Scene(jd.FallingRod(length=1.0, mass=3.0, g=9.81))
+    res = jd.fit(scene, ts, {"theta": angles + 0.002 * rng.normal(size=ts.size)},
+                 parameters={"length": jd.Positive(), "g": jd.Positive()},
+                 initial=["theta", "theta_dot"], restarts=1, key=1, posterior=120, warmup=60,
+                 chains=2)
+    log_length = np.log(res.posterior["length"])
+    ratio = res.posterior["g"] / res.posterior["length"]
+    assert 3.5 < np.std(log_length) < 14, np.std(log_length)
+    fitted = float(res.values["g"]) / float(res.values["length"])
+    assert np.std(ratio) < 0.01 * fitted
+    assert abs(np.mean(ratio) - fitted) < 3 * np.std(ratio), (np.mean(ratio), fitted)
+    assert res.posterior_leapfrogs < 50, res.posterior_leapfrogs

@@ -51,7 +51,7 @@ from .._simulate import check_tolerances, simulate_unchecked
 from .._stored_jit import stored_filter_jit
 from .._tolerance import ScaledPIDController
 from .._validation import ParameterError, device_array, format_value
-from ._parameterisation import AbstractParameterisation, Unconstrained
+from ._parameterisation import PRIOR_SD, AbstractParameterisation, Unconstrained
 
 # Samples are padded (with zero weight) to a multiple of this, so that data sets of similar
 # length share one compilation.
@@ -448,6 +448,18 @@ def _uncertainty(problem, u, free, R, rss, n_obs):
     inv_sv = jnp.where(resolved, 1.0 / jnp.where(resolved, sv, 1.0), 0.0)
     W = (vt * inv_sv[:, None]) * d[None, :]  # rows: directions of u over their singular values
     cov = s2 * (W.T @ W)
+    # The directions of `u` the data do not determine at all (unit rows; zero for the others
+    # and for fixed components): their components' covariance is undetermined (nan), and the
+    # sampler's covariance (its mass matrix and the spread of its starting points) gives them
+    # the prior's spread: with the pseudo-inverse's zero variance there, the chains started
+    # together along such a direction and hardly moved (a rod's length and g both fitted:
+    # the draws of log length spread 0.001 where the posterior spreads about 7, the prior's).
+    null = jnp.where(resolved[:, None], 0.0, vt * d[None, :])
+    size = jnp.sqrt(jnp.sum(null**2, axis=1, keepdims=True))
+    null = jnp.where(size > 0, null / jnp.where(size > 0, size, 1.0), 0.0)
+    involved = jnp.any(jnp.abs(null) > jnp.sqrt(eps), axis=0)
+    sampling_cov = cov + PRIOR_SD**2 * (null.T @ null)
+    cov = jnp.where(involved[:, None] | involved[None, :], jnp.nan, cov)
     values = _summaries(problem, u, free)
     G = jax.jacfwd(_summaries, argnums=1)(problem, u, free)
     std = {}
@@ -466,7 +478,7 @@ def _uncertainty(problem, u, free, R, rss, n_obs):
         std[key] = sd.reshape(values[key].shape).astype(values[key].dtype)
     # `sv` and `vt`: the conditioning of the free columns scaled to unit norm (a tiny singular
     # value is a combination of components that the data do not determine).
-    return cov, values, std, s2, sv, vt
+    return cov, sampling_cov, values, std, s2, sv, vt
 
 
 @stored_filter_jit
@@ -503,7 +515,8 @@ class FitResult:
     - `notes`: one line per component or combination that the data do not determine.
     - `scene`, `y0`: the fitted scene and initial state.
     - `u`, `components`, `covariance`: the unconstrained optimum, the names of its components
-      and their covariance.
+      and their covariance (`nan` in the rows and columns of components along a direction
+      the data do not determine at all).
     - `loss`: `0.5 |r|^2` at the optimum; `residual_rms`: RMS residual (in units of the data,
       divided by `sigma` if given); `residual_rms_by_output`: RMS residual of each output, in
       its own units; `noise_variance`: the residual variance `s^2` (of the residuals divided
@@ -1358,14 +1371,14 @@ def fit(
     loss, u, R, rss, sums = (fitted[k] for k in ("loss", "u", "R", "rss", "sums"))
     rms_by_output, whiteness, systematic = (fitted[k] for k in ("rms_by_output", "whiteness",
                                                                 "systematic"))
-    cov, values, std, s2, sv, vt = _uncertainty(problem, u, free, R, rss, n_obs)
+    cov, sampling_cov, values, std, s2, sv, vt = _uncertainty(problem, u, free, R, rss, n_obs)
 
     draws, acceptance, leapfrogs, report = None, None, None, None
     if posterior:
         from ._posterior import sample
 
         draws, report = sample(problem, u.astype(u0.dtype), free_np, u0, ts_p, obs_p, weights,
-                               s2, cov, jax.random.fold_in(_key(key), 1), _summaries,
+                               s2, sampling_cov, jax.random.fold_in(_key(key), 1), _summaries,
                                draws=posterior, warmup=warmup, chains=chains)
         acceptance = float(np.mean(report["acceptance"]))
         leapfrogs = float(np.mean(report["leapfrogs"]))

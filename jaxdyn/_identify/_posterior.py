@@ -205,7 +205,8 @@ def sample(problem, u, free, u_start, ts, data, weights, s2, cov, key, summaries
     `draws` in all) and the chains' diagnostics (see `FitResult.posterior_diagnostics`).
 
     `free` is the NumPy mask of the fitted components of `u`, `u_start` the fit's starting
-    point (the prior's centre), `cov` the Gauss--Newton covariance of `u`."""
+    point (the prior's centre), `cov` the Gauss--Newton covariance of `u` (with the prior's
+    spread along the directions the data do not determine)."""
     free = np.asarray(free)
     maps = tuple(m.sampling(f) for m, f in zip(problem.maps, _split(problem, free)))
     if any(s.size() != m.size() for s, m in zip(maps, problem.maps)):
