@@ -182,10 +182,10 @@ def _chain(sampled, w, free_index, w_start, free, ts, data, weights, s2, inverse
     warm = jnp.arange(warmup + draws) < warmup
     keys = jnp.concatenate([jax.random.split(k_warm, warmup), jax.random.split(k_draw, draws)])
     with jax.numpy_dtype_promotion("standard"):
-        _, (vs, *out) = jax.lax.scan(step, (state, da), (warm, keys))
-    warm_steps = out[2][:warmup]
-    vs, out = vs[warmup:], [x[warmup:] for x in out]
-    return (jax.vmap(full)(vs), *out, warm_steps)
+        _, (vs, acceptance, divergent, steps, energy) = jax.lax.scan(step, (state, da),
+                                                                     (warm, keys))
+    return (jax.vmap(full)(vs[warmup:]), acceptance[warmup:], divergent[warmup:],
+            steps[warmup:], energy[warmup:], steps[:warmup])
 
 
 def _split_halves(x):
