@@ -145,47 +145,28 @@ def _chain(sampled, w, free_index, w_start, free, ts, data, weights, s2, inverse
     def nuts(step_size):
         return blackjax.nuts(log_density, step_size=step_size, inverse_mass_matrix=inverse_mass)
 
-    # The log density and its gradient (a forward-mode solve) have one call site in the
-    # program: XLA compiles each call site anew, and with four (the start's check, the initial
-    # state, the warm-up's kernel, the sampling's) this program took 14.6 s to compile against
-    # 8.1 s with one (notebook 09's nearly axisymmetric body), the same draws to the bit. So
-    # the initial state is found by a loop over the two candidate starts, and one scan runs
-    # the warm-up and the draws: the step size adapted (dual averaging) during the warm-up,
-    # then held at its average.
+    def warm_step(carry, k):
+        state, da = carry
+        state, info = nuts(jnp.exp(da.log_step_size)).step(k, state)
+        return (state, da_update(da, info.acceptance_rate)), info.num_integration_steps
+
     k_warm, k_draw = jax.random.split(key)
     # A dispersed start outside the support (a body that is not physical, where the optimum
     # lies near that boundary) would never move: such a chain starts at the optimum instead.
-    # (A loop over the two candidates: its body holds the one call site; batched, the two
-    # would be computed with other round-off.)
-    candidates = jnp.stack([start, w[free_index]])
-
-    def first_inside(i, state):
-        new = nuts(1.0).init(candidates[i])
-        use = (i == 0) | ~jnp.isfinite(state.logdensity)
-        return jax.tree.map(lambda a, b: jnp.where(use, a, b), new, state)
-
-    shapes = jax.eval_shape(nuts(1.0).init, start)
-    state = jax.lax.fori_loop(0, 2, first_inside,
-                              jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes))
+    start = jnp.where(jnp.isfinite(log_density(start)), start, w[free_index])
     da = da_init(jnp.asarray(1.0, start.dtype))
-
-    def step(carry, xs):
-        state, da = carry
-        warm, k = xs
-        step_size = jnp.where(warm, jnp.exp(da.log_step_size), da_final(da))
-        state, info = nuts(step_size).step(k, state)
-        adapted = da_update(da, info.acceptance_rate)
-        da = jax.tree.map(lambda new, old: jnp.where(warm, new, old), adapted, da)
-        return (state, da), (state.position, info.acceptance_rate, info.is_divergent,
-                             info.num_integration_steps, info.energy)
-
-    warm = jnp.arange(warmup + draws) < warmup
-    keys = jnp.concatenate([jax.random.split(k_warm, warmup), jax.random.split(k_draw, draws)])
     with jax.numpy_dtype_promotion("standard"):
-        _, (vs, acceptance, divergent, steps, energy) = jax.lax.scan(step, (state, da),
-                                                                     (warm, keys))
-    return (jax.vmap(full)(vs[warmup:]), acceptance[warmup:], divergent[warmup:],
-            steps[warmup:], energy[warmup:], steps[:warmup])
+        (state, da), warm_steps = jax.lax.scan(warm_step, (nuts(1.0).init(start), da),
+                                               jax.random.split(k_warm, warmup))
+    kernel = nuts(da_final(da))
+
+    def step(state, k):
+        state, info = kernel.step(k, state)
+        return state, (state.position, info.acceptance_rate, info.is_divergent,
+                       info.num_integration_steps, info.energy)
+
+    _, (vs, *out) = jax.lax.scan(step, state, jax.random.split(k_draw, draws))
+    return (jax.vmap(full)(vs), *out, warm_steps)
 
 
 def _split_halves(x):
