@@ -148,6 +148,29 @@ def test_jacobian_against_finite_differences():
     fd = central_difference(loss, u, eps=1e-5)
     scale = np.max(np.abs(fd))
     assert np.allclose(grad, fd, atol=10 * tol(FINITE_DIFF) * scale), (grad, fd)
+
+    # The fit takes its Jacobians from its Levenberg-Marquardt program: one step from `u`
+    # with every component free (`exact` infinite ends the loop) returns those of `u`, and a
+    # run with components fixed returns zero columns for them and the rest unchanged.
+    inf = jnp.asarray(np.inf)
+    free = np.ones(u.shape, bool)
+    u1, _, k, _, _, r1, J1 = _fit._levenberg_marquardt(
+        setup.problem, u, jnp.asarray(free), setup.ts_p, setup.obs_p, setup.weights, inf, inf,
+        max_iter=50, progress=False)
+    assert int(k) == 1 and np.array_equal(np.asarray(u1), np.asarray(u))
+    assert np.allclose(J1, J, rtol=0, atol=1e-12 * np.max(np.abs(J)))
+    assert np.allclose(r1, r, rtol=0, atol=1e-12 * np.max(np.abs(r)))
+    free[[0, 4]] = False
+    u2, _, k, _, _, r2, J2 = _fit._levenberg_marquardt(
+        setup.problem, u, jnp.asarray(free), setup.ts_p, setup.obs_p, setup.weights,
+        jnp.asarray(1e-8), jnp.asarray(0.0), max_iter=3, progress=False)
+    assert int(k) == 3
+    J_at, r_at = (np.asarray(x) for x in _fit._jacobian(
+        setup.problem, jnp.where(jnp.asarray(free), u2, u), setup.ts_p, setup.obs_p,
+        setup.weights)[::-1])
+    assert np.all(np.asarray(J2)[:, ~free] == 0)
+    assert np.allclose(J2[:, free], J_at[:, free], rtol=0, atol=1e-12 * np.max(np.abs(J_at)))
+    assert np.allclose(r2, r_at, rtol=0, atol=1e-12 * np.max(np.abs(r_at)))
     # The scale component leaves the rates unchanged: its column is zero.
     assert np.max(np.abs(np.asarray(J[:, 0]))) < 1e-9 * np.max(np.abs(np.asarray(J)))
 
@@ -600,14 +623,16 @@ def test_cli_fit_programs_are_cached_on_the_second_run(tmp_path):
     assert not re.search(r"Not writing persistent cache entry", first)
     written = re.findall(r"Writing (\S+) to persistent compilation cache", first)
     assert any("levenberg_marquardt" in w for w in written), written
-    assert any("jacobian" in w for w in written), written
+    assert any("uncertainty" in w for w in written), written
+    # (The Jacobian comes from the Levenberg-Marquardt program: no program of its own.)
+    assert not any("_jacobian" in w for w in written), written
     assert not re.search(r"Writing .* to persistent compilation cache", second)
     compiled = re.findall(r"Compiling (jit\([^)]*\))", second)
     hits = re.findall(r"Persistent compilation cache hit for '([^']+)'", second)
     assert len(hits) == len(compiled), (compiled, hits)
     # ... and loads the fit's stored compiled programs (`_stored_jit`, `_programs`): the first
     # run traces each function and then the call of its exported form, the second neither.
-    for name in ("_levenberg_marquardt", "_jacobian"):
+    for name in ("_levenberg_marquardt", "_uncertainty"):
         assert re.search(rf"Finished tracing {name}", first), name
         assert not re.search(rf"Finished tracing {name}", second), name
         assert not any(name in c for c in compiled), (name, compiled)

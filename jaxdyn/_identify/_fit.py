@@ -360,9 +360,15 @@ def _levenberg_marquardt(problem, u0, free, ts, data, weights, tol, exact, *, ma
         return u, dynamic, k + 1, done, failed, history.at[k].set(loss)
 
     carry = (u0, dynamic, jnp.asarray(0), jnp.asarray(False), jnp.asarray(False), history)
-    u, _, k, done, failed, history = jax.lax.while_loop(cond, body, carry)
-    loss = _loss(problem, u, ts, data, weights)
-    return u, loss, k, done & ~failed, history
+    u, dynamic, k, done, failed, history = jax.lax.while_loop(cond, body, carry)
+    # The residuals and Jacobian at `u`, the last accepted iterate: optimistix keeps them in
+    # its state (the first step is always accepted, so they are those of `u0` after one
+    # step). Returned, and the loss taken from them, so that the integration is compiled
+    # once here, and in no second program (`_jacobian`: a third of a fit's compilation).
+    # The columns of the fixed components are zero.
+    info = eqx.combine(static, dynamic).f_info
+    loss = 0.5 * jnp.sum(info.residual**2)
+    return u, loss, k, done & ~failed, history, info.residual, info.jac.as_matrix()
 
 
 @stored_filter_jit(unless=_reports_progress)
@@ -410,7 +416,8 @@ def _lbfgs(problem, u0, free, ts, data, weights, tol, exact, *, max_iter, progre
     carry = (u0, opt.init(u0), jnp.asarray(0), jnp.asarray(False), history)
     u, _, k, done, history = jax.lax.while_loop(cond, body, carry)
     loss_value = _loss(problem, u, ts, data, weights)
-    return u, loss_value, k, done & jnp.isfinite(loss_value), history
+    # (No Jacobian at hand: `_jacobian` computes it where it is needed.)
+    return u, loss_value, k, done & jnp.isfinite(loss_value), history, None, None
 
 
 def _summaries(problem, u, free):
@@ -1148,8 +1155,17 @@ def fit(
         identifiability_tol = 1e-6 if eps < 1e-10 else 1e-3
     # Structural identifiability: a zero Jacobian column at the start (the column of a
     # parameter that the outputs do not depend on) stays zero everywhere.
-    if shooting is None:
+    if shooting is None and method == "lm":
+        # From one step of the fit's own Levenberg-Marquardt program (every component
+        # free, `exact` infinite: the first step is accepted and ends the loop), which
+        # returns the Jacobian at `u0`: no program of its own to compile.
+        everything = jax.device_put(np.ones(u0.shape, bool))
+        inf = device_array(np.inf, u0.dtype)
+        *_, J0 = _levenberg_marquardt(problem, u0, everything, ts_p, obs_p, weights, inf, inf,
+                                      max_iter=max_iter, progress=progress)
+    elif shooting is None:
         _, J0 = _jacobian(problem, u0, ts_p, obs_p, weights)
+    if shooting is None:
         norms = np.linalg.norm(np.asarray(J0), axis=0)
         free_np = norms > identifiability_tol * norms.max()
     else:
@@ -1220,12 +1236,14 @@ def fit(
         for h in horizons:
             # Samples up to `t_h` count; the integration stops there too (later sample times
             # are clipped to it: same shapes, so no recompilation).
-            t_h = ts[ts <= ts[0] + h * (ts[-1] - ts[0])][-1]
+            # (The whole record exactly at `h = 1`: `ts[0] + (ts[-1] - ts[0])` can fall an
+            # ulp short of `ts[-1]`.)
+            t_h = ts[-1] if h == 1.0 else ts[ts <= ts[0] + h * (ts[-1] - ts[0])][-1]
             ts_h, w = _clipped(ts_host, weights_host, t_h)
             stage_tol = tol_a if h == 1.0 else tol_early
             exact = zero if h == 1.0 else tol_early  # (see `_levenberg_marquardt`)
-            u, loss, k, ok, hist = polish(problem, u, free, ts_h, obs_p, w, stage_tol, exact,
-                                          max_iter=max_iter, progress=progress)
+            u, loss, k, ok, hist, r, J = polish(problem, u, free, ts_h, obs_p, w, stage_tol,
+                                                exact, max_iter=max_iter, progress=progress)
             u = _fixed(u)
             k = int(k)
             history.append(np.asarray(hist)[:k])
@@ -1236,9 +1254,11 @@ def fit(
         # (and `rtol`) of the data's size (a noise-free record, at the integration's
         # precision) has nothing left to fit: converged.
         ok = bool(ok) or loss <= exact_level
+        # The last stage covers the whole record (its sample times are the record's, its
+        # weights too): its residuals and Jacobian at `u` are those of `_jacobian`.
         return {"loss": loss if np.isfinite(loss) else np.inf, "u": u, "converged": ok,
                 "iterations": iterations, "history": np.concatenate(history),
-                "stages": tuple(stages)}
+                "stages": tuple(stages), "rJ": None if J is None else (r, J)}
 
     def _multiple(u, warm_up, resume=None):
         """Multiple shooting from `u`, after single shooting on the record's start (or, with
@@ -1248,8 +1268,8 @@ def fit(
             for h in (0.25, 0.5, 1.0):
                 t_h = ts[:n_pre][ts[:n_pre] <= ts[0] + h * (ts[n_pre - 1] - ts[0])][-1]
                 ts_h, w = _clipped(pre_ts, pre_w, t_h)
-                u, _, k, _, hist = polish(problem, u, free, ts_h, pre_obs, w, tol_early,
-                                          zero, max_iter=max_iter, progress=progress)
+                u, _, k, _, hist, _, _ = polish(problem, u, free, ts_h, pre_obs, w, tol_early,
+                                                zero, max_iter=max_iter, progress=progress)
                 u = _fixed(u)
                 history.append(np.asarray(hist)[:int(k)])
                 stages.append(iterations)
@@ -1316,7 +1336,7 @@ def fit(
             if "H" in best:  # multiple shooting's own normal matrix
                 sums = dict(zip(outputs, (float(x) for x in best["ss"])))
                 return _root(best["H"]), jnp.asarray(sum(sums.values())), sums, best["series"]
-            r, J = _jacobian(problem, u, ts_p, obs_p, weights)
+            r, J = best["rJ"] or _jacobian(problem, u, ts_p, obs_p, weights)
             series = _series_by_output(np.asarray(r), obs, ts_p.size, problem.kinds)
             sums = {k: float(np.sum(v**2)) for k, v in series.items()}  # (padding weighs 0)
             return jnp.linalg.qr(J, mode="r"), jnp.sum(r**2), sums, series
