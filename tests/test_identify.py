@@ -623,7 +623,7 @@ def test_cli_fit_programs_are_cached_on_the_second_run(tmp_path):
     assert not re.search(r"Not writing persistent cache entry", first)
     written = re.findall(r"Writing (\S+) to persistent compilation cache", first)
     assert any("levenberg_marquardt" in w for w in written), written
-    assert any("uncertainty" in w for w in written), written
+    assert any("summaries_and_derivatives" in w for w in written), written
     # (The Jacobian comes from the Levenberg-Marquardt program: no program of its own.)
     assert not any("_jacobian" in w for w in written), written
     assert not re.search(r"Writing .* to persistent compilation cache", second)
@@ -632,7 +632,7 @@ def test_cli_fit_programs_are_cached_on_the_second_run(tmp_path):
     assert len(hits) == len(compiled), (compiled, hits)
     # ... and loads the fit's stored compiled programs (`_stored_jit`, `_programs`): the first
     # run traces each function and then the call of its exported form, the second neither.
-    for name in ("_levenberg_marquardt", "_uncertainty"):
+    for name in ("_levenberg_marquardt", "_summaries_and_derivatives"):
         assert re.search(rf"Finished tracing {name}", first), name
         assert not re.search(rf"Finished tracing {name}", second), name
         assert not any(name in c for c in compiled), (name, compiled)

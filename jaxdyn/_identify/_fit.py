@@ -228,7 +228,8 @@ def _forward_value_and_grad(problem, u_fixed, free, ts, data, weights):
         return _loss(problem, jnp.where(free, u, u_fixed), ts, data, weights)
 
     def value_and_grad(u):
-        return loss(u), jax.jacfwd(loss)(u)
+        grad, value = _jacobian_and_value(loss, u)  # (one integration, not two)
+        return value, grad
 
     return value_and_grad
 
@@ -429,6 +430,11 @@ def _summaries(problem, u, free):
 
 
 @stored_filter_jit
+def _summaries_and_derivatives(problem, u, free):
+    """The reported summaries at `u` and their derivatives with respect to `u`."""
+    return _summaries(problem, u, free), jax.jacfwd(_summaries, argnums=1)(problem, u, free)
+
+
 def _uncertainty(problem, u, free, R, rss, n_obs):
     """Gauss--Newton covariance of `u` and the 1-sigma intervals of the reported summaries,
     from a square root `R` of the normal matrix (`R^T R = J^T J`: the triangle of `J`'s QR
@@ -442,17 +448,23 @@ def _uncertainty(problem, u, free, R, rss, n_obs):
     the inverse of `J^T J` is round-off: its variances came out negative and the intervals
     zero. A variance is a sum of squares here, so it cannot be negative; a
     direction whose singular value is zero to working precision is left out of the
-    covariance (a pseudo-inverse), and a quantity that depends on it has no interval."""
-    dtype = u.dtype
-    eps = jnp.finfo(dtype).eps
-    R = jnp.where(free[None, :], R.astype(dtype), 0.0)
-    dof = jnp.maximum(n_obs - jnp.sum(free), 1).astype(dtype)
-    s2 = rss.astype(dtype) / dof
-    norms = jnp.sqrt(jnp.sum(R**2, axis=0))
-    d = jnp.where(norms > 0, 1.0 / jnp.where(norms > 0, norms, 1.0), 0.0)
-    _, sv, vt = jnp.linalg.svd(R * d[None, :], full_matrices=False)
+    covariance (a pseudo-inverse), and a quantity that depends on it has no interval.
+
+    Only the summaries and their derivatives are compiled (`_summaries_and_derivatives`);
+    the linear algebra, on matrices of the size of `u`, is NumPy's on the host (LAPACK, as
+    XLA:CPU's): a compiled program of it took about 1 s to compile in every new process."""
+    values, G = _summaries_and_derivatives(problem, u, free)
+    dtype = np.dtype(u.dtype)
+    eps = np.finfo(dtype).eps
+    free = np.asarray(free)
+    R = np.where(free[None, :], np.asarray(R, dtype), 0.0).astype(dtype)
+    dof = dtype.type(max(int(n_obs) - int(np.sum(free)), 1))
+    s2 = np.asarray(rss, dtype) / dof
+    norms = np.sqrt(np.sum(R**2, axis=0))
+    d = np.where(norms > 0, 1.0 / np.where(norms > 0, norms, 1.0), 0.0).astype(dtype)
+    _, sv, vt = np.linalg.svd(R * d[None, :], full_matrices=False)
     resolved = sv > u.shape[0] * eps * sv[0]
-    inv_sv = jnp.where(resolved, 1.0 / jnp.where(resolved, sv, 1.0), 0.0)
+    inv_sv = np.where(resolved, 1.0 / np.where(resolved, sv, 1.0), 0.0).astype(dtype)
     W = (vt * inv_sv[:, None]) * d[None, :]  # rows: directions of u over their singular values
     cov = s2 * (W.T @ W)
     # The directions of `u` the data do not determine at all (unit rows; zero for the others
@@ -461,31 +473,30 @@ def _uncertainty(problem, u, free, R, rss, n_obs):
     # the prior's spread: with the pseudo-inverse's zero variance there, the chains started
     # together along such a direction and hardly moved (a rod's length and g both fitted:
     # the draws of log length spread 0.001 where the posterior spreads about 7, the prior's).
-    null = jnp.where(resolved[:, None], 0.0, vt * d[None, :])
-    size = jnp.sqrt(jnp.sum(null**2, axis=1, keepdims=True))
-    null = jnp.where(size > 0, null / jnp.where(size > 0, size, 1.0), 0.0)
-    involved = jnp.any(jnp.abs(null) > jnp.sqrt(eps), axis=0)
-    sampling_cov = cov + PRIOR_SD**2 * (null.T @ null)
-    cov = jnp.where(involved[:, None] | involved[None, :], jnp.nan, cov)
-    values = _summaries(problem, u, free)
-    G = jax.jacfwd(_summaries, argnums=1)(problem, u, free)
+    null = np.where(resolved[:, None], 0.0, vt * d[None, :]).astype(dtype)
+    size = np.sqrt(np.sum(null**2, axis=1, keepdims=True))
+    null = np.where(size > 0, null / np.where(size > 0, size, 1.0), 0.0).astype(dtype)
+    involved = np.any(np.abs(null) > np.sqrt(eps), axis=0)
+    sampling_cov = cov + dtype.type(PRIOR_SD**2) * (null.T @ null)
+    cov = np.where(involved[:, None] | involved[None, :], np.nan, cov).astype(dtype)
     std = {}
     for key, g in G.items():
-        g = g.reshape(-1, u.shape[0]).astype(dtype)
-        var = s2 * jnp.sum((g @ W.T) ** 2, axis=1)
-        scale = jnp.max(jnp.abs(g * d[None, :]), axis=1, keepdims=True)
+        g = np.asarray(g, dtype).reshape(-1, u.shape[0])
+        var = s2 * np.sum((g @ W.T) ** 2, axis=1)
+        scale = np.max(np.abs(g * d[None, :]), axis=1, keepdims=True)
         # A quantity that depends on a component kept fixed (or free but with a zero column:
         # multiple shooting's normal matrix of a near-flat plate has such rows), or on a
         # direction the data do not determine at all (a zero singular value), has no interval.
-        on_fixed = jnp.max(jnp.abs(jnp.where(free & (norms > 0), 0.0, g)), axis=1)
-        on_null = jnp.max(jnp.where(resolved, 0.0, jnp.abs((g * d[None, :]) @ vt.T)), axis=1)
-        undetermined = ((on_fixed > jnp.sqrt(eps) * jnp.max(jnp.abs(g)))
-                        | (on_null > jnp.sqrt(eps) * scale[:, 0]))
-        sd = jnp.where(undetermined, jnp.nan, jnp.sqrt(var))
-        std[key] = sd.reshape(values[key].shape).astype(values[key].dtype)
+        on_fixed = np.max(np.abs(np.where(free & (norms > 0), 0.0, g)), axis=1)
+        on_null = np.max(np.where(resolved, 0.0, np.abs((g * d[None, :]) @ vt.T)), axis=1)
+        undetermined = ((on_fixed > np.sqrt(eps) * np.max(np.abs(g)))
+                        | (on_null > np.sqrt(eps) * scale[:, 0]))
+        sd = np.where(undetermined, np.nan, np.sqrt(var))
+        std[key] = jnp.asarray(sd.reshape(values[key].shape).astype(values[key].dtype))
     # `sv` and `vt`: the conditioning of the free columns scaled to unit norm (a tiny singular
     # value is a combination of components that the data do not determine).
-    return cov, sampling_cov, values, std, s2, sv, vt
+    return (jnp.asarray(cov), jnp.asarray(sampling_cov.astype(dtype)), values, std,
+            jnp.asarray(s2), sv, vt)
 
 
 @stored_filter_jit
@@ -1339,7 +1350,9 @@ def fit(
             r, J = best["rJ"] or _jacobian(problem, u, ts_p, obs_p, weights)
             series = _series_by_output(np.asarray(r), obs, ts_p.size, problem.kinds)
             sums = {k: float(np.sum(v**2)) for k, v in series.items()}  # (padding weighs 0)
-            return jnp.linalg.qr(J, mode="r"), jnp.sum(r**2), sums, series
+            # (NumPy on the host: eager `jnp` calls would each compile a program.)
+            r = np.asarray(r)
+            return np.linalg.qr(np.asarray(J), mode="r"), np.sum(r**2), sums, series
 
         R, rss, sums, series = normal_and_sums(best, u)
         if reweight and len(outputs) > 1:

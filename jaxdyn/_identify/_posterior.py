@@ -46,6 +46,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._fit import _jacobian_and_value
+
 RHAT_MAX = 1.05  # above this split R-hat, the chains disagree: a warning
 ACCEPTANCE_MIN = 0.3  # below this mean acceptance rate (NUTS aims at 0.8), a chain is stuck
 DISPERSION = 2.0  # chains start at this many Gauss--Newton standard deviations
@@ -92,7 +94,10 @@ def _log_density(sampled, w, free_index, w_start, free, ts, data, weights, s2):
                 _split(sampled, free)))
             return -0.5 * jnp.sum(residuals(v) ** 2) / s2 + prior
 
-        return f(v), jax.jacfwd(f)(v)
+        # The value is the primal of the forward-mode pass: one integration per evaluation
+        # (`f(v)` beside `jacfwd(f)(v)` integrated twice, and compiled twice per call site).
+        grad, value = _jacobian_and_value(f, v)
+        return value, grad
 
     @jax.custom_vjp
     def log_density(v):
