@@ -208,7 +208,7 @@ def _adam(problem, u0, free, ts, data, weights, learning_rate, *, steps, progres
     import optax  # (imported where used: 50 ms of every `jaxdyn fit` that uses neither)
 
     opt = optax.adam(learning_rate)
-    value_and_grad = _forward_value_and_grad(problem, u0, free, ts, data, weights)
+    _, value_and_grad = _forward_value_and_grad(problem, u0, free, ts, data, weights)
 
     def step(carry, _):
         u, state = carry
@@ -231,7 +231,7 @@ def _forward_value_and_grad(problem, u_fixed, free, ts, data, weights):
         grad, value = _jacobian_and_value(loss, u)  # (one integration, not two)
         return value, grad
 
-    return value_and_grad
+    return loss, value_and_grad
 
 
 def _small_decrease(previous, loss, tol):
@@ -379,13 +379,13 @@ def _lbfgs(problem, u0, free, ts, data, weights, tol, exact, *, max_iter, progre
     see `_levenberg_marquardt`.)"""
     import optax
 
-    value_and_grad = _forward_value_and_grad(problem, u0, free, ts, data, weights)
+    plain, value_and_grad = _forward_value_and_grad(problem, u0, free, ts, data, weights)
 
     # optax's line search differentiates the loss in reverse mode; answer with the
     # forward-mode gradient (no reverse pass through the integrator).
     @jax.custom_vjp
     def loss(u):
-        return value_and_grad(u)[0]
+        return plain(u)
 
     def loss_fwd(u):
         value, grad = value_and_grad(u)
@@ -432,7 +432,8 @@ def _summaries(problem, u, free):
 @stored_filter_jit
 def _summaries_and_derivatives(problem, u, free):
     """The reported summaries at `u` and their derivatives with respect to `u`."""
-    return _summaries(problem, u, free), jax.jacfwd(_summaries, argnums=1)(problem, u, free)
+    G, values = _jacobian_and_value(lambda u: _summaries(problem, u, free), u)
+    return values, G
 
 
 def _uncertainty(problem, u, free, R, rss, n_obs):
