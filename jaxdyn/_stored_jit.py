@@ -3,9 +3,10 @@
 For programs that are called with modules (a fit's problem, its parameterisations) rather
 than with a scene's flat leaves: the arguments are split as `filter_jit` splits them (arrays
 traced, everything else static), and the program of each static part is a `StoredProgram`,
-so that a warm `jaxdyn fit` reads its Levenberg--Marquardt and Jacobian programs instead of
-tracing them. Where the compilation cache is off, or the static part names code outside
-jaxdyn and its libraries, it is `jax.jit` of the same function, traced as usual.
+so that a warm `jaxdyn fit` reads its Levenberg--Marquardt program (and its other small
+ones) instead of tracing them. Where the compilation cache is off, or the static part names
+code outside jaxdyn and its libraries, it is `jax.jit` of the same function, traced as
+usual.
 """
 
 import functools

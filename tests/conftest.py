@@ -4,12 +4,17 @@ import tempfile
 
 import pytest
 
-# Optional XLA flags for the whole run, set before JAX starts its backend (inherited by the
-# notebook kernels and the commands the tests start): JAXDYN_TEST_XLA_FLAGS=
-# --xla_backend_optimization_level=0 halves the compile time of compile-bound tests (the
-# gradient and hard-case tests: 334 s -> 219 s for the nine slowest) but slows the
-# run-bound ones by about 1.5x (the telemetry-identification notebook: 115 s -> 177 s, the
-# fits of test_identify), so XLA's defaults stay the default.
+# XLA:CPU's flags for the whole run, set before JAX starts its backend (inherited by the
+# notebook kernels and the commands the tests start). The command's own choice first
+# (`jaxdyn._xla`: XLA's earlier fusion emitters, where this XLA has them, unless XLA_FLAGS
+# names the emitters): it halves the suite's compilation (1034 s -> 528 s of XLA time in the
+# workers, 1091 s -> 772 s of wall time on 2 cores, 28 Nov 2026) and runs the programs as
+# fast. Then any of JAXDYN_TEST_XLA_FLAGS: --xla_backend_optimization_level=0 halves the
+# compile time of compile-bound tests again but slows the run-bound ones by about 1.5x (the
+# telemetry-identification notebook: 115 s -> 177 s), so XLA's defaults stay otherwise.
+from jaxdyn._xla import prefer_fast_compilation  # noqa: E402
+
+prefer_fast_compilation()
 if os.environ.get("JAXDYN_TEST_XLA_FLAGS"):
     os.environ["XLA_FLAGS"] = " ".join(
         filter(None, (os.environ.get("XLA_FLAGS", ""), os.environ["JAXDYN_TEST_XLA_FLAGS"])))

@@ -131,13 +131,15 @@ def test_posterior_near_equal_moments_and_a_flat_plate_agrees_with_importance_sa
     # moments-and-axes coordinates one chain took 508 on this record, wandering on the
     # flat-plate plateau). About 6 with a prior uniform over the tensor; about 20 with the
     # prior uniform in the moments, whose density (1 / gap) is peaked where the two close
-    # moments are equal, inside this posterior: the steps are smaller there (22 on this
-    # record; 18 on average over 40 seeds of the benchmark, 113 the most for one chain).
-    # (Split R-hat of 4 chains of 50 draws scatters by a few hundredths: 1.029, 1.047 and
-    # 1.051 on this record as changes of round-off in the fit changed the chains. The bound
-    # is the classical 1.1; the coordinates this guards against gave 1.7.)
+    # moments are equal, inside this posterior: the steps are smaller there (18 on average
+    # over 40 seeds of the benchmark, 113 the most for one chain).
+    # NUTS is chaotic: a change of round-off anywhere (the fit's linear algebra, XLA's code)
+    # gives other chains. On this record, as such changes came and went (28 Nov 2026): split
+    # R-hat of the 4 chains of 50 draws 1.029, 1.047, 1.051, 1.058, and 20-54 leapfrog steps
+    # per draw (keys 1-6 of the same fit: R-hat 1.007-1.025, 20-35 steps). The bounds are the
+    # classical 1.1 and 100, far from what the coordinates this guards against gave (1.7, 508).
     assert diag["max_rhat"] < 1.1 and min(diag["acceptance"]) > 0.5, diag
-    assert res.posterior_leapfrogs < 50, res.posterior_leapfrogs
+    assert res.posterior_leapfrogs < 100, res.posterior_leapfrogs
 
     x = np.concatenate([_shape(res.posterior["inertia"]), res.posterior["omega"]], axis=1)
     rng = np.random.default_rng(1)
