@@ -496,8 +496,7 @@ def _uncertainty(problem, u, free, R, rss, n_obs):
         std[key] = jnp.asarray(sd.reshape(values[key].shape).astype(values[key].dtype))
     # `sv` and `vt`: the conditioning of the free columns scaled to unit norm (a tiny singular
     # value is a combination of components that the data do not determine).
-    return (jnp.asarray(cov), jnp.asarray(sampling_cov.astype(dtype)), values, std,
-            jnp.asarray(s2), sv, vt)
+    return jnp.asarray(cov), jnp.asarray(sampling_cov), values, std, jnp.asarray(s2), sv, vt
 
 
 @stored_filter_jit
@@ -1167,21 +1166,21 @@ def fit(
         identifiability_tol = 1e-6 if eps < 1e-10 else 1e-3
     # Structural identifiability: a zero Jacobian column at the start (the column of a
     # parameter that the outputs do not depend on) stays zero everywhere.
-    if shooting is None and method == "lm":
-        # From one step of the fit's own Levenberg-Marquardt program (every component
-        # free, `exact` infinite: the first step is accepted and ends the loop), which
-        # returns the Jacobian at `u0`: no program of its own to compile.
-        everything = jax.device_put(np.ones(u0.shape, bool))
-        inf = device_array(np.inf, u0.dtype)
-        *_, J0 = _levenberg_marquardt(problem, u0, everything, ts_p, obs_p, weights, inf, inf,
-                                      max_iter=max_iter, progress=progress)
-    elif shooting is None:
-        _, J0 = _jacobian(problem, u0, ts_p, obs_p, weights)
-    if shooting is None:
+    if shooting is not None:
+        free_np = shooting.free(problem, u0, identifiability_tol)
+    else:
+        if method == "lm":
+            # From one step of the fit's own Levenberg-Marquardt program (every component
+            # free, `exact` infinite: the first step is accepted and ends the loop), which
+            # returns the Jacobian at `u0`: no program of its own to compile.
+            everything = jax.device_put(np.ones(u0.shape, bool))
+            inf = device_array(np.inf, u0.dtype)
+            *_, J0 = _levenberg_marquardt(problem, u0, everything, ts_p, obs_p, weights, inf,
+                                          inf, max_iter=max_iter, progress=progress)
+        else:
+            _, J0 = _jacobian(problem, u0, ts_p, obs_p, weights)
         norms = np.linalg.norm(np.asarray(J0), axis=0)
         free_np = norms > identifiability_tol * norms.max()
-    else:
-        free_np = shooting.free(problem, u0, identifiability_tol)
     free = jax.device_put(free_np)
     u0_np = np.asarray(u0)
 
