@@ -4,7 +4,7 @@ Compiled programs are written to a directory and reused by later processes, so t
 `jaxdyn run` (or the second kernel start of a notebook) skips compilation. jaxdyn's public
 programs carry no host callbacks (failures come back as outcome codes, raised on the host),
 so JAX can cache every one of them. Beside JAX's entries, `jaxdyn-programs/` keeps the
-programs jaxdyn builds once per structure, exported and compiled for this machine
+programs jaxdyn builds once per structure, compiled for this machine
 (`jaxdyn._programs`), which a later process loads without tracing them again.
 """
 

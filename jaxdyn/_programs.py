@@ -4,15 +4,20 @@ JAX's persistent compilation cache (`jaxdyn._cache`) skips XLA's compilation in 
 process, but not the Python tracing and lowering that come before it, which for a diffrax
 program is most of a warm command (0.9 s of tracing and 0.2 s of lowering for the falling
 rod's `simulate`, against 0.25 s to load its compiled code). So where that cache is on, each
-program that jaxdyn builds once per scene structure (`_solution._structure_program`) is also
-kept as a serialised [`jax.export`](https://docs.jax.dev/en/latest/export/export.html)
-module beside it (in `<cache>/jaxdyn-programs`): a later process deserialises it and calls it,
-and JAX compiles it from the persistent cache.
+program that jaxdyn builds once per scene structure (`_solution._structure_program`) and the
+fit's programs (`_stored_jit`) are also kept, compiled for this machine, beside it (in
+`<cache>/jaxdyn-programs`, by `jax.experimental.serialize_executable`): a later process loads
+the compiled program and calls it, without tracing, lowering or compiling. The first process
+traces, lowers and compiles once, as `jax.jit` would, and stores what it compiled. (Until
+28 Nov 2026 the first process also exported the program, `jax.export`, and compiled the
+export: a second tracing and lowering that cost a cold `jaxdyn run` about 0.45 s, kept only
+for another machine sharing the folder, which now compiles afresh.)
 
 A stored program is used only where its key says it is the same program:
 - the key holds the program's name and static options, the scene's structure (its classes and
   static fields) and the inputs' shapes and dtypes, the versions of jax, jaxlib, diffrax,
-  equinox, optimistix and lineax, and a hash of jaxdyn's own source;
+  equinox, optimistix and lineax, a hash of jaxdyn's own source, and the machine (`_machine`:
+  the processor, the devices and XLA's flags);
 - a structure that names anything outside these packages (a class defined in a notebook, a
   Python function held by an effect) is never stored: its code could change under the same
   name, so it is traced as usual.
@@ -35,7 +40,6 @@ _TRUSTED = ("jaxdyn", "builtins", "diffrax", "equinox", "jax", "jaxlib", "optimi
             "lineax", "collections", "numpy")
 _CLASS = re.compile(r"<class '([\w.]+)'>")
 _DIR = "jaxdyn-programs"
-_ANY_CUSTOM_CALL = [jax.export.DisabledSafetyCheck.custom_call("ALL")]
 
 
 def _register_sentinels() -> None:
@@ -115,8 +119,8 @@ class StoredProgram:
         leaves, in_tree = jax.tree_util.tree_flatten(args)
         if any(isinstance(x, jax.core.Tracer) for x in leaves):
             # Under the caller's transformation (`jit`, `vmap`, `grad` of a derived output of
-            # a traced trajectory): the function itself, traced (an exported program has no
-            # derivative rule, a compiled one takes concrete inputs only).
+            # a traced trajectory): the function itself, traced (a compiled program has no
+            # derivative rule and takes concrete inputs only).
             return self.jitted
         key = (in_tree, _signature(leaves))
         call = self.calls.get(key)
@@ -125,81 +129,38 @@ class StoredProgram:
         return call
 
     def _load(self, args, key):
-        """The program for this signature: this machine's compiled program read from disk,
-        or the exported program deserialised (or exported and stored) and compiled, and its
-        compiled form stored (`jax.jit` alone where the compilation cache is off or the
-        structure untrusted)."""
+        """The program for this signature: this machine's compiled program read from disk, or
+        else compiled here and stored for the next process (`jax.jit` alone where the
+        compilation cache is off or the structure untrusted)."""
         where = _directory() if self.trusted else None
         if where is None:
             return self.jitted
         text = f"{_version()}|{self.text}|{key}|x64={jax.config.jax_enable_x64}|" \
-               f"{jax.default_backend()}"
-        stem = where / hashlib.sha256(text.encode()).hexdigest()
-        compiled_path = where / (hashlib.sha256(f"{text}|{_machine()}".encode()).hexdigest()
-                                 + ".exe")
-        loaded = _read_executable(compiled_path)
+               f"{jax.default_backend()}|{_machine()}"
+        path = where / (hashlib.sha256(text.encode()).hexdigest() + ".exe")
+        loaded = _read_executable(path)
         if loaded is None:
-            return self._exported(stem, args, compiled_path)
+            return self._compiled(args, path)
         compiled, out_tree = loaded
-        return _checked(compiled, out_tree, compiled_path,
-                        lambda a: self._exported(stem, a, None))
+        return _checked(compiled, out_tree, path, lambda a: self._compiled(a, None))
 
-    def _exported(self, stem: Path, args, compiled_path: Path | None):
-        """The exported program (read from `stem`, or exported and stored there) under
-        `jax.jit`; its compiled form stored at `compiled_path` (unless `None`)."""
-        try:
-            blob = (stem.with_suffix(".bin")).read_bytes()
-            out_tree, weak = pickle.loads((stem.with_suffix(".tree")).read_bytes())
-            exported = jax.export.deserialize(bytearray(blob))
-        except Exception:  # not stored yet (or unreadable): export it
-            exported, out_tree, weak = self._export(stem, args)
-        if exported is None:
-            return self.jitted
+    def _compiled(self, args, path: Path | None):
+        """The program traced, lowered and compiled for `args` as `jax.jit` would, and its
+        compiled form stored at `path` (unless `None`; see `_compile_and_store`)."""
+        found = []
 
-        def call(*args):  # serialising drops weak types: given back as traced
-            outs = exported.call(*args)
-            return [_weakly_typed(x) if w else x for x, w in zip(outs, weak)]
+        def flat(*a):  # flat outputs: their tree is kept beside the compiled program
+            leaves, tree = jax.tree_util.tree_flatten(self.fn(*a))
+            found.append(tree)
+            return leaves
 
         # Named with jaxdyn's version: JAX's persistent cache then never holds the program
         # from an earlier version (its executable could not be stored: `_compile_and_store`).
-        program = _on_one_device(_named(call, self.fn, _version()[:10]))
-
-        def plain(*a):
-            return jax.tree_util.tree_unflatten(out_tree, program(*a))
-
-        compiled = (None if compiled_path is None
-                    else _compile_and_store(compiled_path, program, args, out_tree))
+        program = _on_one_device(_named(flat, self.fn, _version()[:10]))
+        compiled = _compile_and_store(path, program, args, found)
         if compiled is None:
-            return plain
-        return _checked(compiled, out_tree, None, lambda _: plain)
-
-    def _export(self, stem: Path, args):
-        found = []
-
-        def flat(*a):
-            leaves, tree = jax.tree_util.tree_flatten(self.fn(*a))
-            found.append((tree, [bool(getattr(jax.typeof(x), "weak_type", False))
-                                 for x in leaves]))
-            return leaves
-
-        try:
-            # Custom calls (LAPACK's QR in a fit) are stored too: the key holds jaxlib's
-            # version and the backend, so the stability across versions that `jax.export`
-            # checks by default is not needed.
-            exported = jax.export.export(jax.jit(_named(flat, self.fn)),
-                                         disabled_checks=_ANY_CUSTOM_CALL)(*args)
-            blob = exported.serialize()
-            tree = pickle.dumps(found[0])
-            if pickle.loads(tree) != found[0]:  # a structure that does not survive a pickle
-                return None, None, None
-            if any(found[0][1]):
-                _weakly_typed(np.zeros(()))
-        except Exception:  # a program that cannot be exported is traced as usual
-            return None, None, None
-        for suffix, data in ((".tree", tree), (".bin", blob)):
-            _write(stem.with_suffix(suffix), data)
-        # Called as a later process will call it, from its serialised form.
-        return jax.export.deserialize(bytearray(blob)), *found[0]
+            return self.jitted
+        return _checked(compiled, found[0], None, lambda _: self.jitted)
 
 
 _MACHINE = None
@@ -264,15 +225,17 @@ def _checked(compiled, out_tree, path: Path | None, fallback):
 _CUSTOM_CALL = re.compile(r"custom_call @(\w+)|call_target_name = \"(\w+)\"")
 
 
-def _compile_and_store(path: Path, program, args, out_tree):
-    """`program` compiled for `args` (`None` where it cannot be: it is then called as usual),
-    and stored at `path` as this machine's compiled program where that is safe (a later
-    process loads it without tracing, lowering or compiling: `_read_executable`). Not stored
-    where JAX's persistent cache held the program (an earlier version of jaxdyn compiled the
-    same one): XLA:CPU's executable deserialised from that cache serialises without its
-    kernels ("Function ... not found" when run; measured with jax 0.10), so only a fresh
-    compilation is stored; nor where it calls custom kernels other than LAPACK's (only those
-    are known to be set up on loading, below)."""
+def _compile_and_store(path: Path | None, program, args, found: list):
+    """`program` (flat outputs, whose tree its tracing appends to `found`) compiled for
+    `args` (`None` where it cannot be: it is then called as usual), and stored at `path` as
+    this machine's compiled program where that is safe (a later process loads it without
+    tracing, lowering or compiling: `_read_executable`). Not stored where JAX's persistent
+    cache held the program (an earlier process compiled the same one under other
+    circumstances, such as a stored program that was since removed): XLA:CPU's executable
+    deserialised from that cache serialises without its kernels ("Function ... not found"
+    when run; measured with jax 0.10), so only a fresh compilation is stored; nor where it
+    calls custom kernels other than LAPACK's (only those are known to be set up on loading,
+    below), nor where the outputs' tree does not survive a pickle."""
     hits = []
 
     def listen(event, **kwargs):
@@ -288,16 +251,22 @@ def _compile_and_store(path: Path, program, args, out_tree):
             jax.monitoring.unregister_event_listener(listen)
     except Exception:  # called as usual
         return None
+    if path is None or hits:
+        return compiled
     targets = {a or b for a, b in _CUSTOM_CALL.findall(lowered.as_text())}
-    if not hits and all(t.startswith("lapack_") for t in targets):
-        try:
-            from jax.experimental import serialize_executable
+    if not all(t.startswith("lapack_") for t in targets):
+        return compiled
+    try:
+        from jax.experimental import serialize_executable
 
-            blob = pickle.dumps((serialize_executable.serialize(compiled), out_tree,
-                                 bool(targets)))
-        except Exception:  # not serialisable: used, not kept
+        out_tree = pickle.dumps(found[0])
+        if pickle.loads(out_tree) != found[0]:  # (a structure that does not survive a pickle)
             return compiled
-        _write(path, blob)
+        blob = pickle.dumps((serialize_executable.serialize(compiled), found[0],
+                             bool(targets)))
+    except Exception:  # not serialisable: used, not kept
+        return compiled
+    _write(path, blob)
     return compiled
 
 
@@ -369,14 +338,6 @@ def _on_one_device(fn):
     placement makes every call the same program. (Inputs committed to another device are
     moved to the default one: jaxdyn's programs run on one device.)"""
     return jax.jit(fn, in_shardings=jax.sharding.SingleDeviceSharding(_default_device()))
-
-
-def _weakly_typed(x):
-    """`x` as a weakly typed value (as a Python scalar in a program is): JAX's own
-    conversion, private; where it is missing, programs with such outputs are not stored."""
-    from jax._src.lax.lax import _convert_element_type  # pyright: ignore
-
-    return _convert_element_type(x, weak_type=True)
 
 
 def _named(fn, like, tag=None):

@@ -45,6 +45,7 @@ from ._effects import Rotor
 from ._rigid_body import RigidBody
 from ._scene import Scene
 from ._simulate import simulate
+from ._stored_jit import stored_filter_jit
 from ._validation import ParameterError, as_float_array
 
 _NUM_STARTS = 64  # Fibonacci points on the momentum sphere; a gyrostat has at most 6 equilibria.
@@ -292,7 +293,7 @@ def _classify(scene: Scene, omega):
     return eig, rel, u
 
 
-@eqx.filter_jit
+@stored_filter_jit
 def _solve_all(scene: Scene, momentum, directions):
     centre, shape, rate_scale, scale = _sphere_frame(scene, momentum)
     dtype = momentum.dtype
@@ -329,15 +330,17 @@ def _normalised(scene: Scene, momentum) -> tuple[Scene, float, float]:
     unit `I_max` that convert back. The equilibria of the gyrostat equations scale exactly so,
     and solving in these units keeps every intermediate (rates, their squares, the Hessian of
     `|H|^2`) near one: inertia of 1e20 or momenta of 1e-300 lose nothing to overflow."""
-    inertia = np.asarray(scene.body.inertia, dtype=np.float64)
-    big = float(np.max(np.abs(inertia)))
+    # (On the host, in each value's own dtype: `find_equilibria` is never traced, and an eager
+    # division would be a program of its own.)
+    inertia = np.asarray(scene.body.inertia)
+    big = float(np.max(np.abs(inertia.astype(np.float64))))
     h = float(momentum)
-    values = {"inertia": scene.body.inertia / jnp.asarray(big, scene.body.inertia.dtype)}
+    values = {"inertia": jax.device_put(inertia / np.asarray(big, inertia.dtype))}
     for label, e in zip(scene.labels, scene.effects):
         for name, kind in e.parameter_kinds.items():
             if kind == "momentum":
-                v = e.parameters()[name]
-                values[f"{label}.{name}"] = v / jnp.asarray(h, v.dtype)
+                v = np.asarray(e.parameters()[name])
+                values[f"{label}.{name}"] = jax.device_put(v / np.asarray(h, v.dtype))
     return scene.replace(values), h / big, big
 
 
@@ -378,7 +381,7 @@ def find_equilibria(scene: Scene, momentum: float | ArrayLike = 1.0) -> Equilibr
     directions = jnp.asarray(_fibonacci_sphere(_NUM_STARTS), dtype)
     unit_scene, rate_unit, _ = _normalised(scene, momentum)
     w, ok, energy, eig, rel, unstable, scale = jax.device_get(
-        _solve_all(unit_scene, jnp.ones((), dtype), directions)
+        _solve_all(unit_scene, jax.device_put(np.ones((), dtype)), directions)
     )
     tol = _same_point_tol(dtype) * float(scale)
     found: list[int] = []
@@ -585,7 +588,7 @@ def _lambda_squared(inertia, axis, rate, h):
     return 0.25 * jnp.trace(jac) ** 2 - c2
 
 
-@eqx.filter_jit
+@stored_filter_jit
 def _critical_roots(inertia, axis, rate, guesses):
     size = jnp.sum(inertia) * jnp.abs(rate)  # momentum scale S |W|
 
@@ -652,8 +655,9 @@ def critical_rotor_momenta(
     if not (np.isfinite(float(rate)) and float(rate) != 0):
         raise ParameterError(f"rate={float(rate):g}: must be nonzero and finite")
     # |roots| <= max |I_i - I_K| |W| < S |W|: starting guesses on both sides of every root.
-    guesses = jnp.linspace(-2.0, 2.0, 21, dtype=dtype)
-    axis = jnp.asarray(int(spin_axis))  # traced: one compilation for every axis
+    # (Inputs prepared on the host: each eager operation would be a program of its own.)
+    guesses = jax.device_put(np.linspace(-2.0, 2.0, 21, dtype=dtype))
+    axis = jax.device_put(np.asarray(int(spin_axis)))  # traced: one compilation for every axis
     # The roots are h = (I_i - I_K) W: solved for unit rate and largest moment, then scaled
     # back, so that no rate is squared at its own size (1e160 rad/s would overflow).
     big = float(np.max(np.abs(np.asarray(inertia))))
@@ -663,11 +667,12 @@ def critical_rotor_momenta(
             f"rate={float(rate):g}: the critical momenta (about max(inertia) x rate = "
             f"{big:g} x {abs(float(rate)):g}) overflow {jnp.dtype(dtype).name}")
     roots, ok, size = jax.device_get(_critical_roots(
-        inertia / big, axis, jnp.sign(rate), guesses))
+        jax.device_put(np.asarray(inertia) / np.asarray(big, dtype)), axis,
+        jax.device_put(np.sign(np.asarray(rate))), guesses))
     roots, size = roots * unit, float(size) * unit
     found = np.sort(roots[ok])
     # Roots closer than this (relative to S |W|) are one root: a double root is located only to
     # about the square root of the solver tolerance.
     tol = 4 * np.sqrt(_newton_tol(dtype)) * float(size)
     clusters = np.split(found, np.flatnonzero(np.diff(found) > tol) + 1) if found.size else []
-    return jnp.asarray([c.mean() for c in clusters], dtype)
+    return jax.device_put(np.asarray([c.mean() for c in clusters], dtype))

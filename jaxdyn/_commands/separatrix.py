@@ -58,7 +58,7 @@ def _reject(args, names: list[str], reason: str) -> None:
 
 
 def _critical(args, inertia: list[float]) -> dict[str, Any]:
-    import jax.numpy as jnp
+    import numpy as np
 
     from .._separatrix import critical_rotor_momenta
     from .._validation import ParameterError
@@ -77,17 +77,16 @@ def _critical(args, inertia: list[float]) -> dict[str, Any]:
         raise ParameterError("--rate=0: must be nonzero (a spin at rate 0 has no stability "
                              "to change)")
     axis = int(args.spin_axis)
-    roots = critical_rotor_momenta(jnp.asarray(inertia), axis - 1, rate)
+    roots = critical_rotor_momenta(np.asarray(inertia, np.float64), axis - 1, rate)
     return {
         "inertia": inertia,
         "spin_axis": axis,
         "rate": rate,
-        "critical_rotor_momenta": [float(h) for h in roots],
+        "critical_rotor_momenta": np.asarray(roots).tolist(),
     }
 
 
 def _equilibria(args, inertia: list[float]) -> dict[str, Any]:
-    import jax.numpy as jnp
     import numpy as np
 
     from .._effects import Rotor
@@ -101,8 +100,8 @@ def _equilibria(args, inertia: list[float]) -> dict[str, Any]:
     momentum = 1.0 if args.momentum is None else _numbers("--momentum", args.momentum)[0]
     if not momentum > 0:
         raise ParameterError(f"--momentum={args.momentum}: must be positive")
-    body = RigidBody(jnp.asarray(inertia))
-    effects = () if rotor is None else (Rotor(jnp.asarray(rotor)),)
+    body = RigidBody(np.asarray(inertia, np.float64))
+    effects = () if rotor is None else (Rotor(np.asarray(rotor, np.float64)),)
     eq = find_equilibria(Scene(body, effects), momentum)
     omega, energy = np.asarray(eq.omega), np.asarray(eq.energy)
     eig = np.asarray(eq.eigenvalues)
@@ -122,7 +121,7 @@ def _equilibria(args, inertia: list[float]) -> dict[str, Any]:
             }
             for i in range(len(eq))
         ],
-        "separatrix_energies": [float(e) for e in eq.separatrix_energies],
+        "separatrix_energies": np.asarray(eq.separatrix_energies).tolist(),
     }
     if eq.continuum:
         out["degenerate_equilibria"] = int(eq.degenerate.shape[0])
