@@ -84,14 +84,14 @@ def _log_density(sampled, w, free_index, w_start, free, ts, data, weights, s2):
     def residuals(v):
         return sampled.residuals(full(v), ts, data, weights)
 
-    def log_density_and_grad(v):
-        def f(v):
-            x = full(v)
-            prior = sum(m.log_prior(p, p0, fr) for m, p, p0, fr in zip(
-                sampled.maps, _split(sampled, x), _split(sampled, w_start),
-                _split(sampled, free)))
-            return -0.5 * jnp.sum(residuals(v) ** 2) / s2 + prior
+    def f(v):
+        x = full(v)
+        prior = sum(m.log_prior(p, p0, fr) for m, p, p0, fr in zip(
+            sampled.maps, _split(sampled, x), _split(sampled, w_start),
+            _split(sampled, free)))
+        return -0.5 * jnp.sum(residuals(v) ** 2) / s2 + prior
 
+    def log_density_and_grad(v):
         # (The value as the primal of the forward-mode pass, one integration instead of two,
         # is the same to 1e-15 and compiled the chain in 7.3 s instead of 16.5 s, but over
         # seeds 0-5 of `benchmarks/identify.py --coverage 6`, twice each, 5 of 12 fits had a
@@ -100,8 +100,8 @@ def _log_density(sampled, w, free_index, w_start, free, ts, data, weights, s2):
         return f(v), jax.jacfwd(f)(v)
 
     @jax.custom_vjp
-    def log_density(v):
-        return log_density_and_grad(v)[0]
+    def log_density(v):  # the value alone where no gradient is asked for (a chain's start)
+        return f(v)
 
     def fwd(v):
         return log_density_and_grad(v)
@@ -150,27 +150,32 @@ def _chain(sampled, w, free_index, w_start, free, ts, data, weights, s2, inverse
     def nuts(step_size):
         return blackjax.nuts(log_density, step_size=step_size, inverse_mass_matrix=inverse_mass)
 
-    def warm_step(carry, k):
-        state, da = carry
-        state, info = nuts(jnp.exp(da.log_step_size)).step(k, state)
-        return (state, da_update(da, info.acceptance_rate)), info.num_integration_steps
+    # Warm-up and draws in one scan (the step size adapted by dual averaging while warming
+    # up, then fixed at its final value): NUTS's step, which holds the integration and its
+    # derivatives inside the trajectory's nested loops, is compiled once instead of twice
+    # (the same steps as the two scans this replaces).
+    def one_step(carry, xs):
+        state, da, final = carry
+        k, warming = xs
+        state, info = nuts(jnp.where(warming, jnp.exp(da.log_step_size), final)).step(k, state)
+        da = jax.tree.map(lambda new, old: jnp.where(warming, new, old),
+                          da_update(da, info.acceptance_rate), da)
+        final = jnp.where(warming, da_final(da), final)
+        return (state, da, final), (state.position, info.acceptance_rate, info.is_divergent,
+                                    info.num_integration_steps, info.energy)
 
     k_warm, k_draw = jax.random.split(key)
     # A dispersed start outside the support (a body that is not physical, where the optimum
     # lies near that boundary) would never move: such a chain starts at the optimum instead.
     start = jnp.where(jnp.isfinite(log_density(start)), start, w[free_index])
     da = da_init(jnp.asarray(1.0, start.dtype))
+    keys = jnp.concatenate([jax.random.split(k_warm, warmup), jax.random.split(k_draw, draws)])
+    warming = jnp.arange(warmup + draws) < warmup
     with jax.numpy_dtype_promotion("standard"):
-        (state, da), warm_steps = jax.lax.scan(warm_step, (nuts(1.0).init(start), da),
-                                               jax.random.split(k_warm, warmup))
-    kernel = nuts(da_final(da))
-
-    def step(state, k):
-        state, info = kernel.step(k, state)
-        return state, (state.position, info.acceptance_rate, info.is_divergent,
-                       info.num_integration_steps, info.energy)
-
-    _, (vs, *out) = jax.lax.scan(step, state, jax.random.split(k_draw, draws))
+        _, (vs, *out) = jax.lax.scan(one_step, (nuts(1.0).init(start), da, da_final(da)),
+                                     (keys, warming))
+    warm_steps = out[2][:warmup]
+    vs, out = vs[warmup:], [x[warmup:] for x in out]
     return (jax.vmap(full)(vs), *out, warm_steps)
 
 
