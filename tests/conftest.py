@@ -35,8 +35,8 @@ enable_compilation_cache()
 
 # The longest tests first, so that the workers finish together instead of one running a long
 # test alone at the end (with `--dist loadscope`, pyproject.toml, each module goes whole to
-# one worker, in the order of its first test here). Ordered by `--durations` of a fresh-cache `pytest -n 2` run (loaded
-# machine, 24 Nov 2026); each is mostly compilation.
+# one worker, in the order of its first test here). Ordered by `--durations` of a
+# fresh-cache `pytest -n 2` run (loaded machine, 24 Nov 2026); each is mostly compilation.
 SLOW_FIRST = (
     "test_posterior.py::test_posterior_agrees_with_gauss_newton_where_it_holds",
     "test_magnetorquers.py::test_residual_dipole_identified_from_gyro_rates",
