@@ -22,6 +22,14 @@ A stored program is used only where its key says it is the same program:
   Python function held by an effect) is never stored: its code could change under the same
   name, so it is traced as usual.
 Nothing is stored or read where the compilation cache is off.
+
+One case keeps the tracing: a program that JAX's persistent cache already holds when it is
+first compiled under a key (the same program under another key, or one whose stored file was
+removed or could not be written) is used but not stored, since XLA:CPU's executable read from
+that cache serialises without its kernels (`_compile_and_store`); a later process traces and
+lowers it, and JAX's cache skips its compilation. Files of earlier versions (other keys, and
+the `.bin`/`.tree` exports written before 28 Nov 2026) are never read again; the folder is a
+cache and may be removed at any time.
 """
 
 import copyreg

@@ -277,7 +277,7 @@ def test_a_stored_program_is_traceable_by_the_callers_transformations(stored, mo
 
 def test_gradients_through_a_derived_output_with_programs_stored(stored):
     """`jax.grad` of a derived output of a run from a traced state (the scene concrete): the
-    stored outputs program, an exported or compiled one, has no derivative rule, so traced
+    stored outputs program, a compiled one, has no derivative rule, so traced
     inputs trace the function itself (with programs stored this raised "No VJP is
     available"). Checked against central differences."""
     scene = jd.Scene(jd.RigidBody([1.0, 2.0, 3.0]))
