@@ -267,8 +267,7 @@ def _compile_and_store(path: Path | None, program, args, found: list):
     try:
         from jax.experimental import serialize_executable
 
-        out_tree = pickle.dumps(found[0])
-        if pickle.loads(out_tree) != found[0]:  # (a structure that does not survive a pickle)
+        if pickle.loads(pickle.dumps(found[0])) != found[0]:  # (a tree lost in a pickle)
             return compiled
         blob = pickle.dumps((serialize_executable.serialize(compiled), found[0],
                              bool(targets)))

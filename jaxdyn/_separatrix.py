@@ -46,7 +46,7 @@ from ._rigid_body import RigidBody
 from ._scene import Scene
 from ._simulate import simulate
 from ._stored_jit import stored_filter_jit
-from ._validation import ParameterError, as_float_array
+from ._validation import ParameterError, as_float_array, device_array
 
 _NUM_STARTS = 64  # Fibonacci points on the momentum sphere; a gyrostat has at most 6 equilibria.
 
@@ -335,12 +335,12 @@ def _normalised(scene: Scene, momentum) -> tuple[Scene, float, float]:
     inertia = np.asarray(scene.body.inertia)
     big = float(np.max(np.abs(inertia.astype(np.float64))))
     h = float(momentum)
-    values = {"inertia": jax.device_put(inertia / np.asarray(big, inertia.dtype))}
+    values = {"inertia": device_array(inertia / np.asarray(big, inertia.dtype), inertia.dtype)}
     for label, e in zip(scene.labels, scene.effects):
         for name, kind in e.parameter_kinds.items():
             if kind == "momentum":
                 v = np.asarray(e.parameters()[name])
-                values[f"{label}.{name}"] = jax.device_put(v / np.asarray(h, v.dtype))
+                values[f"{label}.{name}"] = device_array(v / np.asarray(h, v.dtype), v.dtype)
     return scene.replace(values), h / big, big
 
 
@@ -381,7 +381,7 @@ def find_equilibria(scene: Scene, momentum: float | ArrayLike = 1.0) -> Equilibr
     directions = jnp.asarray(_fibonacci_sphere(_NUM_STARTS), dtype)
     unit_scene, rate_unit, _ = _normalised(scene, momentum)
     w, ok, energy, eig, rel, unstable, scale = jax.device_get(
-        _solve_all(unit_scene, jax.device_put(np.ones((), dtype)), directions)
+        _solve_all(unit_scene, device_array(1.0, dtype), directions)
     )
     tol = _same_point_tol(dtype) * float(scale)
     found: list[int] = []
@@ -656,8 +656,8 @@ def critical_rotor_momenta(
         raise ParameterError(f"rate={float(rate):g}: must be nonzero and finite")
     # |roots| <= max |I_i - I_K| |W| < S |W|: starting guesses on both sides of every root.
     # (Inputs prepared on the host: each eager operation would be a program of its own.)
-    guesses = jax.device_put(np.linspace(-2.0, 2.0, 21, dtype=dtype))
-    axis = jax.device_put(np.asarray(int(spin_axis)))  # traced: one compilation for every axis
+    guesses = device_array(np.linspace(-2.0, 2.0, 21), dtype)
+    axis = device_array(int(spin_axis), int)  # traced: one compilation for every axis
     # The roots are h = (I_i - I_K) W: solved for unit rate and largest moment, then scaled
     # back, so that no rate is squared at its own size (1e160 rad/s would overflow).
     big = float(np.max(np.abs(np.asarray(inertia))))
@@ -667,12 +667,12 @@ def critical_rotor_momenta(
             f"rate={float(rate):g}: the critical momenta (about max(inertia) x rate = "
             f"{big:g} x {abs(float(rate)):g}) overflow {jnp.dtype(dtype).name}")
     roots, ok, size = jax.device_get(_critical_roots(
-        jax.device_put(np.asarray(inertia) / np.asarray(big, dtype)), axis,
-        jax.device_put(np.sign(np.asarray(rate))), guesses))
+        device_array(np.asarray(inertia) / np.asarray(big, dtype), dtype), axis,
+        device_array(np.sign(np.asarray(rate)), dtype), guesses))
     roots, size = roots * unit, float(size) * unit
     found = np.sort(roots[ok])
     # Roots closer than this (relative to S |W|) are one root: a double root is located only to
     # about the square root of the solver tolerance.
     tol = 4 * np.sqrt(_newton_tol(dtype)) * float(size)
     clusters = np.split(found, np.flatnonzero(np.diff(found) > tol) + 1) if found.size else []
-    return jax.device_put(np.asarray([c.mean() for c in clusters], dtype))
+    return device_array([c.mean() for c in clusters], dtype)
