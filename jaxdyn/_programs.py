@@ -39,6 +39,7 @@ import os
 import pickle
 import platform
 import re
+import threading
 from pathlib import Path
 
 import jax
@@ -132,20 +133,55 @@ class StoredProgram:
             return self.jitted
         key = (in_tree, _signature(leaves))
         call = self.calls.get(key)
-        if call is None:  # decided once per signature in a process
+        if call is None or isinstance(call, _Pending):  # decided once per signature
             call = self.calls[key] = self._load(args, key)
         return call
+
+    def prepare(self, *args):
+        """Have the program for the signature of `args` (their structure, shapes and dtypes;
+        the values do not matter) made ready on a worker thread while this thread next
+        compiles another stored program: XLA:CPU compiles a program on one core, without
+        Python's lock, so a program whose inputs' shapes are known before they are computed
+        (a fit's summaries, known at its start) is traced and compiled on the other core,
+        off the caller's path. A call of this signature then waits for it; one that comes
+        first makes the program itself. Nothing where the program is stored already (it is
+        read when called), not stored at all, or the arguments are traced."""
+        leaves, in_tree = jax.tree_util.tree_flatten(args)
+        if any(isinstance(x, jax.core.Tracer) for x in leaves):
+            return
+        key = (in_tree, _signature(leaves))
+        path = self._path(key)
+        if key in self.calls or path is None or path.exists():
+            return
+        context = _trace_context()
+        if context is not None:
+            self.calls[key] = _Pending(self, args, path, context)
+
+    def _path(self, key) -> Path | None:
+        """Where the program of this signature is stored, or `None` (not stored)."""
+        where = _directory() if self.trusted else None
+        if where is None:
+            return None
+        text = f"{_version()}|{self.text}|{key}|x64={jax.config.jax_enable_x64}|" \
+               f"{jax.default_backend()}|{_machine()}"
+        return where / (hashlib.sha256(text.encode()).hexdigest() + ".exe")
 
     def _load(self, args, key):
         """The program for this signature: this machine's compiled program read from disk, or
         else compiled here and stored for the next process (`jax.jit` alone where the
-        compilation cache is off or the structure untrusted)."""
-        where = _directory() if self.trusted else None
-        if where is None:
+        compilation cache is off or the structure untrusted); or the one being made ready
+        by `prepare`."""
+        pending = self.calls.get(key)
+        if isinstance(pending, _Pending):
+            ready = pending.wait()
+            if ready is not None:
+                return ready
+        path = self._path(key)
+        if path is None:
             return self.jitted
-        text = f"{_version()}|{self.text}|{key}|x64={jax.config.jax_enable_x64}|" \
-               f"{jax.default_backend()}|{_machine()}"
-        path = where / (hashlib.sha256(text.encode()).hexdigest() + ".exe")
+        return self._ready(args, path)
+
+    def _ready(self, args, path: Path):
         loaded = _read_executable(path)
         if loaded is None:
             return self._compiled(args, path)
@@ -169,6 +205,67 @@ class StoredProgram:
         if compiled is None:
             return self.jitted
         return _checked(compiled, found[0], None, lambda _: self.jitted)
+
+
+def _trace_context():
+    """The configuration a program is traced under (JAX's own key for it: x64, the default
+    device, ...), or `None` where this JAX does not say (then nothing is prepared)."""
+    try:
+        from jax._src.config import trace_context  # pyright: ignore
+
+        return trace_context()
+    except Exception:
+        return None
+
+
+_QUEUE: list = []  # programs to prepare when a compilation next starts (`StoredProgram.prepare`)
+_LOCK = threading.Lock()
+
+
+class _Pending:
+    """A program `prepare`d: queued, then made ready on a worker thread once a compilation
+    starts (`_start_queued`). Its thread traces only under the caller's configuration
+    (settings such as `jax.default_device` are per thread): otherwise it does nothing, and
+    the call makes the program itself."""
+
+    def __init__(self, program: "StoredProgram", args, path: Path, context):
+        self.program, self.args, self.path, self.context = program, args, path, context
+        self.done = threading.Event()
+        self.result = None
+        with _LOCK:
+            _QUEUE.append(self)
+
+    def start(self) -> None:
+        def work():
+            try:
+                if _trace_context() == self.context:
+                    self.result = self.program._ready(self.args, self.path)
+            except Exception:  # made again by the call, which raises what it raises
+                self.result = None
+            finally:
+                self.done.set()
+
+        threading.Thread(target=work, name="jaxdyn-prepare").start()
+
+    def wait(self):
+        """The program made ready, or `None` (not started, or it failed): the caller makes
+        it."""
+        with _LOCK:
+            if self in _QUEUE:
+                _QUEUE.remove(self)
+                return None
+        self.done.wait()
+        result, self.args = self.result, None
+        return result
+
+
+def _start_queued() -> None:
+    """Start preparing the queued programs (called as a compilation starts)."""
+    with _LOCK:
+        queued = list(_QUEUE)
+        _QUEUE.clear()
+    for pending in queued:
+        pending.start()
 
 
 _MACHINE = None
@@ -244,14 +341,15 @@ def _compile_and_store(path: Path | None, program, args, found: list):
     when run; measured with jax 0.10), so only a fresh compilation is stored; nor where it
     calls custom kernels other than LAPACK's (only those are known to be set up on loading,
     below), nor where the outputs' tree does not survive a pickle."""
-    hits = []
+    hits, me = [], threading.get_ident()
 
-    def listen(event, **kwargs):
-        if event == "/jax/compilation_cache/cache_hits":
+    def listen(event, **kwargs):  # (this thread's compilation, not a prepared one's)
+        if event == "/jax/compilation_cache/cache_hits" and threading.get_ident() == me:
             hits.append(event)
 
     try:
         lowered = program.lower(*args)
+        _start_queued()  # (their tracing runs while XLA compiles this one)
         jax.monitoring.register_event_listener(listen)
         try:
             compiled = lowered.compile()

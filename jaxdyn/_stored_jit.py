@@ -27,18 +27,17 @@ def stored_filter_jit(fn=None, *, unless=None):
     name = f"{fn.__module__}.{fn.__qualname__}"
     programs: dict = {}
 
-    @functools.wraps(fn)
-    def call(*args, **kwargs):
-        if unless is not None and unless(kwargs):
-            return plain(*args, **kwargs)
+    def program_for(args, kwargs):
+        """The stored program for the static part of these arguments and its array leaves,
+        or `None` (an unhashable static value: `filter_jit`'s own call, which refuses it)."""
         dynamic, static = eqx.partition((args, kwargs), eqx.is_array)
         leaves, treedef = jax.tree_util.tree_flatten(dynamic)
         static_leaves, static_def = jax.tree_util.tree_flatten(static)
         key = (treedef, static_def, tuple(static_leaves))
         try:
             program = programs.get(key)
-        except TypeError:  # an unhashable static value: as filter_jit would (it refuses)
-            return plain(*args, **kwargs)
+        except TypeError:
+            return None, leaves
         if program is None:
             def flat(*leaves):
                 a, k = eqx.combine(jax.tree_util.tree_unflatten(treedef, leaves), static)
@@ -47,6 +46,25 @@ def stored_filter_jit(fn=None, *, unless=None):
             flat.__name__ = flat.__qualname__ = fn.__name__  # JAX's logs name it after `fn`
             program = programs[key] = StoredProgram(
                 name, f"{treedef}|{static_def}|{static_leaves!r}", (), flat)
+        return program, leaves
+
+    @functools.wraps(fn)
+    def call(*args, **kwargs):
+        if unless is not None and unless(kwargs):
+            return plain(*args, **kwargs)
+        program, leaves = program_for(args, kwargs)
+        if program is None:
+            return plain(*args, **kwargs)
         return program(*leaves)
 
+    def prepare(*args, **kwargs):
+        """Have the program for arguments like these made ready on another core while the
+        caller compiles (`StoredProgram.prepare`)."""
+        if unless is not None and unless(kwargs):
+            return
+        program, leaves = program_for(args, kwargs)
+        if program is not None:
+            program.prepare(*leaves)
+
+    call.prepare = prepare
     return call

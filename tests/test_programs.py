@@ -292,3 +292,55 @@ def test_gradients_through_a_derived_output_with_programs_stored(stored):
     h = 1e-6
     fd = [(float(f(w + h * e)) - float(f(w - h * e))) / (2 * h) for e in np.eye(3)]
     np.testing.assert_allclose(grad, fd, rtol=1e-5, atol=1e-8)
+
+
+def _traced_on(threads):
+    """A small stored program that records the thread each tracing runs on."""
+    import threading
+
+    def scaled(x, y):
+        threads.append(threading.current_thread().name)
+        return {"sum": x * 2.0 + jax.numpy.sin(y), "n": x.shape[0]}
+
+    return _programs.StoredProgram("test-scaled", "scaled", (), scaled)
+
+
+def test_a_prepared_program_is_compiled_on_another_thread_while_one_compiles(stored):
+    threads, calls = [], []
+    prepared = _traced_on(threads)
+    x, y = np.arange(3.0), np.asarray(0.5)
+    # Prepared with other values of the same shapes: only the signature matters.
+    prepared.prepare(np.zeros(3), np.asarray(9.0))
+    assert threads == [] and len(_programs._QUEUE) == 1  # waits for a compilation to start
+    program, leaves = _program(calls)
+    program(leaves, SCENE.state(theta=0.2), np.asarray(5.0))  # compiles: starts the other
+    out = prepared(x, y)
+    assert threads == ["jaxdyn-prepare"] and not _programs._QUEUE  # traced there, once
+    # Its own numbers (an independent route: NumPy), and stored for the next process.
+    np.testing.assert_allclose(out["sum"], 2.0 * x + np.sin(0.5), rtol=1e-15)
+    assert len(list(stored.glob("*.exe"))) == 2
+    again = _traced_on(threads)
+    again.prepare(x, y)  # stored already: read when called, nothing queued
+    assert not _programs._QUEUE
+    np.testing.assert_array_equal(again(x, y)["sum"], out["sum"])
+    assert threads == ["jaxdyn-prepare"]
+
+
+def test_a_prepared_program_called_first_or_under_other_settings_is_made_by_the_call(stored):
+    threads, calls = [], []
+    prepared = _traced_on(threads)
+    x, y = np.arange(3.0), np.asarray(0.5)
+    prepared.prepare(x, y)
+    prepared(x, y)  # called before any compilation started: made here, dropped from the queue
+    assert threads == ["MainThread"] and not _programs._QUEUE
+    # Prepared under a setting of the caller's thread (here x64 off): the worker, which does
+    # not share it, leaves the program to the call, made under the caller's setting.
+    threads.clear()
+    other = _traced_on(threads)
+    with jax.enable_x64(False):
+        other.prepare(np.arange(3.0, dtype=np.float32), np.asarray(0.5, np.float32))
+        trigger = _traced_on(calls)  # another program compiled: starts the worker
+        trigger(np.arange(4.0, dtype=np.float32), np.asarray(0.5, np.float32))
+        out = other(np.arange(3.0, dtype=np.float32), np.asarray(0.5, np.float32))
+    assert threads == ["MainThread"] and out["sum"].dtype == np.float32
+    np.testing.assert_allclose(out["sum"], 2.0 * np.arange(3.0) + np.sin(0.5), rtol=1e-6)

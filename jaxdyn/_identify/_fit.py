@@ -1174,6 +1174,9 @@ def fit(
             # free, `exact` infinite: the first step is accepted and ends the loop), which
             # returns the Jacobian at `u0`: no program of its own to compile.
             everything = jax.device_put(np.ones(u0.shape, bool))
+            # The summaries' program (known from here: the same problem, `u` and `free`
+            # shaped as `u0`) is compiled on the other core while this one compiles.
+            _summaries_and_derivatives.prepare(problem, u0, everything)
             inf = device_array(np.inf, u0.dtype)
             *_, J0 = _levenberg_marquardt(problem, u0, everything, ts_p, obs_p, weights, inf,
                                           inf, max_iter=max_iter, progress=progress)
