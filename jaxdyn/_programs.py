@@ -23,6 +23,12 @@ A stored program is used only where its key says it is the same program:
   name, so it is traced as usual.
 Nothing is stored or read where the compilation cache is off.
 
+A program whose inputs' shapes are known before its inputs are computed can be `prepare`d: it
+is then traced and compiled on a worker thread while the caller's thread compiles another
+program (XLA:CPU compiles a program on one core and releases Python's lock meanwhile), and a
+later call waits for it. A cold `jaxdyn fit` prepares its summaries' program as its
+Levenberg-Marquardt program compiles.
+
 One case keeps the tracing: a program that JAX's persistent cache already holds when it is
 first compiled under a key (the same program under another key, or one whose stored file was
 removed or could not be written) is used but not stored, since XLA:CPU's executable read from
