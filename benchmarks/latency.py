@@ -14,8 +14,10 @@
   programs, which hold no host callback: XLA:CPU then runs a program on a worker thread unless
   its cost estimate, also reported, is under 1000 operations); the call against jaxdyn's own
   compiled program; a derived
-  output (`traj.omega`, `traj.normal_force`) against its compiled program. Medians of repeats;
-  the steps and the final states of both are compared.
+  output (`traj.omega`, `traj.normal_force`) against its compiled program. Medians of repeats,
+  taken in rounds that call each of the compared functions in turn (so that a slower phase of
+  the machine weighs on all of them alike); the steps and the final states of both are
+  compared.
 - **Samples**: `jd.simulate(..., ts=...)` of the free body over 100 s (about 1000 steps)
   against the number of sample times (1e2 to 1e5; 1e6 without `--quick`), after compilation,
   against a hand-written `jax.jit(diffeqsolve)` with diffrax's `SaveAt(ts)` and against the
@@ -112,15 +114,24 @@ def commands(quick):
 
 
 def _median_us(fn, repeats):
+    return _medians_us([fn], repeats)[0]
+
+
+def _medians_us(fns, repeats):
+    """The median time of each of `fns` (microseconds) over `repeats` rounds, each round
+    calling every one in turn: a slower phase of the machine (another process, the clock)
+    then weighs on all of them alike, and their ratios hold across runs."""
     import jax
 
-    jax.block_until_ready(fn())
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
+    for fn in fns:
         jax.block_until_ready(fn())
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times) * 1e6
+    times = [[] for _ in fns]
+    for _ in range(repeats):
+        for fn, t in zip(fns, times):
+            t0 = time.perf_counter()
+            jax.block_until_ready(fn())
+            t.append(time.perf_counter() - t0)
+    return [statistics.median(t) * 1e6 for t in times]
 
 
 def _free_body():
@@ -204,12 +215,6 @@ def calls(repeats):
         # would also time the flattening of its tree: 10-20 us for a `Trajectory`, which
         # holds its scene; `jd.simulate` has read the run's outcome, so its result is ready
         # when it returns). The whole result is timed too (`simulate_whole_result_us`).
-        sim_us = _median_us(lambda sc=sc, y=y, t1=t1: jd.simulate(sc, y, t1, rtol=rtol).ys,
-                            repeats)
-        sim_whole_us = _median_us(lambda sc=sc, y=y, t1=t1: jd.simulate(sc, y, t1, rtol=rtol),
-                                  repeats)
-        hand_us = _median_us(lambda: hand().ys, repeats)
-        quiet_us = _median_us(lambda q=quiet_jit, a=hand_args: q(*a).ys, repeats)
         traj = jd.simulate(sc, y, t1, rtol=rtol)
         sol = hand()
         # jaxdyn's own compiled program, called directly (no host checks, no Trajectory).
@@ -217,13 +222,21 @@ def calls(repeats):
         key = next(k for k in _simulate._PROGRAMS if k[:2] == ("simulate", treedef))
         prog = _simulate._PROGRAMS[key]
         args = (leaves, y, np.array([0.0, t1, rtol, 0.0]), None)  # (t0, t1, rtol, atol)
-        prog_us = _median_us(lambda prog=prog, args=args: prog(*args)[1], repeats)  # ys
+        # Timed in turn, round by round (`_medians_us`).
+        sim_us, sim_whole_us, hand_us, quiet_us, prog_us = _medians_us([
+            lambda sc=sc, y=y, t1=t1: jd.simulate(sc, y, t1, rtol=rtol).ys,
+            lambda sc=sc, y=y, t1=t1: jd.simulate(sc, y, t1, rtol=rtol),
+            lambda: hand().ys,
+            lambda q=quiet_jit, a=hand_args: q(*a).ys,
+            lambda prog=prog, args=args: prog(*args)[1],  # ys
+        ], repeats)
         cost = prog.jitted.lower(*args).compile().cost_analysis()
         hand_cost = quiet_jit.lower(*hand_args).compile().cost_analysis()
         cost, hand_cost = (c[0] if isinstance(c, list) else c for c in (cost, hand_cost))
         outputs_program = jax.jit(jax.vmap(sc.outputs))
-        out_prog_us = _median_us(lambda traj=traj: outputs_program(traj.ts, traj.ys), repeats)
-        out_us = _median_us(lambda traj=traj, output=output: getattr(traj, output), repeats)
+        out_prog_us, out_us = _medians_us([
+            lambda traj=traj: outputs_program(traj.ts, traj.ys),
+            lambda traj=traj, output=output: getattr(traj, output)], repeats)
         final_ours = np.concatenate([np.ravel(v) for v in traj.y_final.values()])
         final_hand = np.ravel(np.asarray(sol.ys)[-1])
         out[name] = {
