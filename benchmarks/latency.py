@@ -14,7 +14,8 @@
   programs, which hold no host callback: XLA:CPU then runs a program on a worker thread unless
   its cost estimate, also reported, is under 1000 operations); the call against jaxdyn's own
   compiled program; a derived
-  output (`traj.omega`, `traj.normal_force`) against its compiled program. Medians of repeats,
+  output (`traj.omega`, `traj.normal_force`) against its compiled program, accessed again on
+  one trajectory and first accessed on each of many new ones. Medians of repeats,
   taken in rounds that call each of the compared functions in turn (so that a slower phase of
   the machine weighs on all of them alike); the steps and the final states of both are
   compared.
@@ -237,6 +238,19 @@ def calls(repeats):
         out_prog_us, out_us = _medians_us([
             lambda traj=traj: outputs_program(traj.ts, traj.ys),
             lambda traj=traj, output=output: getattr(traj, output)], repeats)
+        # The first access on each of `repeats` new trajectories of the same structure (the
+        # repeated access above reuses the last access's names and program call), in turn
+        # with the program on the same trajectory.
+        fresh = [jd.simulate(sc, y, t1, rtol=rtol) for _ in range(repeats)]
+        first, program_first = [], []
+        for tr in fresh:
+            for fn, times in ((lambda: getattr(tr, output), first),
+                              (lambda: outputs_program(tr.ts, tr.ys), program_first)):
+                t0 = time.perf_counter()
+                jax.block_until_ready(fn())
+                times.append(time.perf_counter() - t0)
+        first_us = statistics.median(first) * 1e6
+        program_first_us = statistics.median(program_first) * 1e6
         final_ours = np.concatenate([np.ravel(v) for v in traj.y_final.values()])
         final_hand = np.ravel(np.asarray(sol.ys)[-1])
         out[name] = {
@@ -253,6 +267,8 @@ def calls(repeats):
                                                           - final_hand))),
             f"{output}_us": out_us, "outputs_program_us": out_prog_us,
             "output_over_program": out_us / out_prog_us,
+            f"new_trajectory_{output}_us": first_us,
+            "new_trajectory_output_over_program": first_us / program_first_us,
         }
     return out
 

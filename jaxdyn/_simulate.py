@@ -222,7 +222,7 @@ _OUTCOME = _FIELDS.index("outcome")
 # once (the layout checked, the dtype, the program's callable); and the last scene called, with
 # its leaves and that dict, so that a loop over calls does not take the scene apart each time.
 _STRUCTURES: dict = {}
-_LAST: list = [None, None, None]
+_LAST: list = [(None, None, None)]
 
 
 def _check_state_values(scene: Scene, y0) -> None:
@@ -244,14 +244,15 @@ def _fast_simulate(scene, y0, t1, t0, ts, rtol, atol, max_steps, events, dense):
     if not isinstance(scene, Scene) or type(y0) is not dict or type(max_steps) is not int \
             or max_steps <= 0:
         return None
-    if _LAST[0] is scene:
-        leaves, known = _LAST[1], _LAST[2]
+    last = _LAST[0]  # (one read: another thread may replace it)
+    if last[0] is scene:
+        leaves, known = last[1], last[2]
     else:
         leaves, treedef = jax.tree_util.tree_flatten(scene)
         if not _concrete_arrays(*leaves):
             return None
         known = _STRUCTURES.setdefault((treedef, _signature(leaves)), {})
-        _LAST[:] = scene, leaves, known
+        _LAST[0] = (scene, leaves, known)
     values = list(y0.values())
     if not _concrete_arrays(*values) or isinstance(ts, jax.core.Tracer):
         return None

@@ -146,11 +146,24 @@ class Trajectory(eqx.Module):
     def __getattr__(self, name: str):
         if name.startswith("_"):
             raise AttributeError(name)
-        scene = self.scene
+        scene, ts, ys = self.scene, self.ts, self.ys
+        last = _LAST_OUTPUTS[0]  # (one read: another thread may replace it)
+        if last[0] is scene:
+            # The scene of the last access (`jd.simulate` keeps the caller's scene, so every
+            # run of it): its leaves, output names and program, without flattening the scene
+            # or looking them up; and the program's call, where the times and states are
+            # those of the last access too.
+            _, leaves, names, program, last_ts, last_ys, call = last
+            if name in names:
+                if ts is not last_ts or ys is not last_ys:
+                    call = program.resolve(leaves, ts, ys)
+                    if _concrete_arrays(ts, *jax.tree.leaves(ys)):
+                        _LAST_OUTPUTS[0] = (scene, leaves, names, program, ts, ys, call)
+                return call(leaves, ts, ys)[name]
         flat = jax.tree_util.tree_flatten(scene)  # (once for both)
         names = Scene.output_names(scene, flat)  # (not a bound method: equinox wraps those)
         if name in names:
-            return _outputs(scene, self.ts, self.ys, flat)[name]
+            return _outputs(scene, ts, ys, flat, names)[name]
         raise AttributeError(
             f"Trajectory has no attribute {name!r}; derived outputs of this scene: {list(names)}"
         )
@@ -227,10 +240,18 @@ def _trajectory_program(name: str, fn, filtered, traj: Trajectory, *static):
     return _structure_program(name, treedef, static, build)(leaves)
 
 
-def _outputs(scene: Scene, ts, ys, flat=None) -> dict[str, Array]:
+# The last concrete derived-output access: its scene (held, so that its identity cannot be
+# reused while it is here), the scene's leaves, output names and program, and the times,
+# states and program call of the access.
+_LAST_OUTPUTS: list = [(None,) * 7]
+
+
+def _outputs(scene: Scene, ts, ys, flat=None, names=None) -> dict[str, Array]:
     """Every derived output at the times `ts`: one `jax.jit` program per scene structure,
     called with arrays only (equinox's filtered call where the scene holds Python functions
-    or the values are traced). `flat`: the scene's `tree_flatten`, where the caller has it."""
+    or the values are traced). `flat`: the scene's `tree_flatten`, where the caller has it;
+    `names`: its output names, where the caller has them (the access is then remembered for
+    the next, `_LAST_OUTPUTS`)."""
     leaves, treedef = flat if flat is not None else jax.tree_util.tree_flatten(scene)
     if not _concrete_arrays(*leaves):
         return _outputs_filtered(scene, ts, ys)
@@ -242,7 +263,11 @@ def _outputs(scene: Scene, ts, ys, flat=None) -> dict[str, Array]:
 
         return outputs_program
 
-    return _structure_program("outputs", treedef, (), build)(leaves, ts, ys)
+    program = _structure_program("outputs", treedef, (), build)
+    call = program.resolve(leaves, ts, ys)
+    if names is not None and _concrete_arrays(ts, *jax.tree.leaves(ys)):
+        _LAST_OUTPUTS[0] = (scene, leaves, names, program, ts, ys, call)
+    return call(leaves, ts, ys)
 
 
 @eqx.filter_jit

@@ -110,7 +110,7 @@ def test_host_and_device_inputs_share_one_compiled_program(on_disk, tmp_path, mo
     compiled it twice (inputs committed to a device are another lowering)."""
     monkeypatch.setattr(_programs, "_directory", lambda: tmp_path if on_disk else None)
     monkeypatch.setattr(_simulate, "_STRUCTURES", {})  # (this process's programs: none)
-    monkeypatch.setattr(_simulate, "_LAST", [None, None, None])
+    monkeypatch.setattr(_simulate, "_LAST", [(None, None, None)])
     monkeypatch.setattr(_solution, "_PROGRAMS", {})
     ts = np.linspace(0.0, 0.1, 37)  # (a signature no other test compiles)
     with jax.log_compiles(), caplog.at_level("WARNING"):

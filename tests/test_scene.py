@@ -1,6 +1,7 @@
 """The scene protocol: only declared effects are traced, stored and integrated."""
 
 import diffrax as dfx
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -140,3 +141,30 @@ def test_output_names_and_derived_outputs():
         assert getattr(traj, name).shape[0] == 5
     with pytest.raises(AttributeError, match="derived outputs"):
         traj.normal_force
+
+
+def test_derived_outputs_of_alternating_trajectories_are_their_own():
+    # The last access is remembered (its names and program call): trajectories of one
+    # structure read in turn, and one rebuilt with other states, each give their own outputs.
+    # Independent route: the angular momentum I omega and the energy from the saved rates.
+    trajs = []
+    for inertia, omega in ((INERTIA, OMEGA), (INERTIA * 1.7, OMEGA[::-1]), (INERTIA, -OMEGA)):
+        scene = jd.Scene(jd.RigidBody(inertia))
+        trajs.append(jd.simulate(scene, scene.state(omega=omega), 2.0,
+                                 ts=jnp.linspace(0, 2, 7)))
+    for traj in trajs + trajs[::-1] + trajs:
+        inertia = np.asarray(traj.scene.body.inertia)
+        w = np.asarray(traj.ys["omega"])
+        np.testing.assert_allclose(traj.angular_momentum, w * inertia, rtol=1e-14)
+        np.testing.assert_allclose(traj.energy, 0.5 * np.sum(inertia * w**2, axis=1),
+                                   rtol=1e-14)
+    other = eqx.tree_at(lambda t: t.ys, trajs[0], {"omega": trajs[1].ys["omega"]})
+    np.testing.assert_allclose(other.angular_momentum,
+                               np.asarray(trajs[1].ys["omega"]) * np.asarray(INERTIA),
+                               rtol=1e-14)
+    # The same scene with another number of samples: another program (its own shapes).
+    trajs[0].angular_momentum
+    fewer = jd.simulate(trajs[0].scene, trajs[0].scene.state(omega=OMEGA), 2.0,
+                        ts=jnp.linspace(0, 2, 4))
+    np.testing.assert_allclose(fewer.angular_momentum,
+                               np.asarray(fewer.ys["omega"]) * np.asarray(INERTIA), rtol=1e-14)
