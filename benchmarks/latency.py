@@ -15,7 +15,8 @@
   its cost estimate, also reported, is under 1000 operations); the call against jaxdyn's own
   compiled program; a derived
   output (`traj.omega`, `traj.normal_force`) against its compiled program, accessed again on
-  one trajectory and first accessed on each of many new ones. Medians of repeats,
+  one trajectory and first accessed on each of many new runs of the same scene. Medians of
+  repeats,
   taken in rounds that call each of the compared functions in turn (so that a slower phase of
   the machine weighs on all of them alike); the steps and the final states of both are
   compared.
@@ -238,14 +239,16 @@ def calls(repeats):
         out_prog_us, out_us = _medians_us([
             lambda traj=traj: outputs_program(traj.ts, traj.ys),
             lambda traj=traj, output=output: getattr(traj, output)], repeats)
-        # The first access on each of `repeats` new trajectories of the same structure (the
-        # repeated access above reuses the last access's names and program call), in turn
-        # with the program on the same trajectory.
+        # The first access on each of `repeats` new runs of the same scene object (the
+        # repeated access above reuses the last access's program call; a new run needs its
+        # own), in turn with the program on the same run, which of the two goes first
+        # alternating from one run to the next.
         fresh = [jd.simulate(sc, y, t1, rtol=rtol) for _ in range(repeats)]
         first, program_first = [], []
-        for tr in fresh:
-            for fn, times in ((lambda: getattr(tr, output), first),
-                              (lambda: outputs_program(tr.ts, tr.ys), program_first)):
+        for i, tr in enumerate(fresh):
+            pair = [(lambda: getattr(tr, output), first),
+                    (lambda: outputs_program(tr.ts, tr.ys), program_first)]
+            for fn, times in pair[::1 if i % 2 else -1]:
                 t0 = time.perf_counter()
                 jax.block_until_ready(fn())
                 times.append(time.perf_counter() - t0)

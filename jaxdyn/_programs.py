@@ -39,6 +39,7 @@ cache and may be removed at any time.
 """
 
 import copyreg
+import functools
 import hashlib
 import importlib.metadata
 import os
@@ -156,8 +157,10 @@ class StoredProgram:
         if any(isinstance(x, jax.core.Tracer) for x in leaves):
             return
         key = (in_tree, _signature(leaves))
+        if key in self.calls:
+            return
         path = self._path(key)
-        if key in self.calls or path is None or path.exists():
+        if path is None or path.exists():
             return
         context = _trace_context()
         if context is not None:
@@ -179,6 +182,9 @@ class StoredProgram:
         by `prepare`."""
         pending = self.calls.get(key)
         if isinstance(pending, _Pending):
+            # Taken out first: a call interrupted while it compiles leaves nothing behind
+            # for the next to wait on (a concurrent caller compiles its own).
+            self.calls.pop(key, None)
             ready = pending.wait()
             if ready is not None:
                 return ready
@@ -232,7 +238,8 @@ class _Pending:
     """A program `prepare`d: queued, then made ready on a worker thread once a compilation
     starts (`_start_queued`). Its thread traces only under the caller's configuration
     (settings such as `jax.default_device` are per thread): otherwise it does nothing, and
-    the call makes the program itself."""
+    the call makes the program itself. The thread is not a daemon: a process that ends while
+    it compiles waits for it (at most one compilation)."""
 
     def __init__(self, program: "StoredProgram", args, path: Path, context):
         self.program, self.args, self.path, self.context = program, args, path, context
@@ -240,6 +247,9 @@ class _Pending:
         self.result = None
         with _LOCK:
             _QUEUE.append(self)
+        scope = getattr(_SCOPE, "pending", None)
+        if scope is not None:
+            scope.append(self)
 
     def start(self) -> None:
         def work():
@@ -249,20 +259,32 @@ class _Pending:
             except Exception:  # made again by the call, which raises what it raises
                 self.result = None
             finally:
+                self.args = None
                 self.done.set()
 
-        threading.Thread(target=work, name="jaxdyn-prepare").start()
+        try:
+            threading.Thread(target=work, name="jaxdyn-prepare").start()
+        except Exception:  # no thread to be had (at the interpreter's shutdown): the call
+            self.args = None  # makes it
+            self.done.set()
+
+    def cancel(self) -> bool:
+        """Take it out of the queue if it has not started (its call, if any, makes it);
+        whether it was still queued."""
+        with _LOCK:
+            if self not in _QUEUE:
+                return False
+            _QUEUE.remove(self)
+        self.args = None
+        self.done.set()
+        return True
 
     def wait(self):
         """The program made ready, or `None` (not started, or it failed): the caller makes
         it."""
-        with _LOCK:
-            if self in _QUEUE:
-                _QUEUE.remove(self)
-                return None
-        self.done.wait()
-        result, self.args = self.result, None
-        return result
+        if not self.cancel():
+            self.done.wait()
+        return self.result
 
 
 def _start_queued() -> None:
@@ -272,6 +294,27 @@ def _start_queued() -> None:
         _QUEUE.clear()
     for pending in queued:
         pending.start()
+
+
+_SCOPE = threading.local()
+
+
+def cancels_unused_preparations(fn):
+    """`fn` with the programs it `prepare`s on this thread and has not called by the time it
+    returns or raises taken out of the queue (an interrupted fit leaves no compilation to be
+    started later for nothing)."""
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        outer = getattr(_SCOPE, "pending", None)
+        _SCOPE.pending = mine = []
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            _SCOPE.pending = outer
+            for pending in mine:
+                pending.cancel()
+
+    return wrapper
 
 
 _MACHINE = None
@@ -347,22 +390,18 @@ def _compile_and_store(path: Path | None, program, args, found: list):
     when run; measured with jax 0.10), so only a fresh compilation is stored; nor where it
     calls custom kernels other than LAPACK's (only those are known to be set up on loading,
     below), nor where the outputs' tree does not survive a pickle."""
-    hits, me = [], threading.get_ident()
-
-    def listen(event, **kwargs):  # (this thread's compilation, not a prepared one's)
-        if event == "/jax/compilation_cache/cache_hits" and threading.get_ident() == me:
-            hits.append(event)
-
     try:
         lowered = program.lower(*args)
-        _start_queued()  # (their tracing runs while XLA compiles this one)
-        jax.monitoring.register_event_listener(listen)
-        try:
-            compiled = lowered.compile()
-        finally:
-            jax.monitoring.unregister_event_listener(listen)
     except Exception:  # called as usual
         return None
+    _start_queued()  # (their tracing runs while XLA compiles this one)
+    _listen_for_cache_hits()
+    _HITS.count = 0  # (this thread's compilation's, not a prepared one's)
+    try:
+        compiled = lowered.compile()
+    except Exception:
+        return None
+    hits = _HITS.count
     if path is None or hits:
         return compiled
     targets = {a or b for a, b in _CUSTOM_CALL.findall(lowered.as_text())}
@@ -379,6 +418,28 @@ def _compile_and_store(path: Path | None, program, args, found: list):
         return compiled
     _write(path, blob)
     return compiled
+
+
+_HITS = threading.local()  # JAX's persistent-cache hits of this thread's compilations
+_LISTENING: list = []
+
+
+def _listen_for_cache_hits() -> None:
+    """Count JAX's persistent-cache hits per thread (JAX records them on the compiling
+    thread); one listener for the process, registered once (registering and removing one per
+    compilation raced with another thread's compilation reading the listeners)."""
+    if _LISTENING:
+        return
+    with _LOCK:
+        if _LISTENING:
+            return
+
+        def listen(event, **kwargs):
+            if event == "/jax/compilation_cache/cache_hits":
+                _HITS.count = getattr(_HITS, "count", 0) + 1
+
+        jax.monitoring.register_event_listener(listen)
+        _LISTENING.append(listen)
 
 
 def _read_executable(path: Path):

@@ -2,6 +2,7 @@
 `_solution.py`), the dense output merged over the segments of a run, derived outputs, and the
 host-side report of a failure."""
 
+import weakref
 from typing import Any
 
 import diffrax as dfx
@@ -146,24 +147,30 @@ class Trajectory(eqx.Module):
     def __getattr__(self, name: str):
         if name.startswith("_"):
             raise AttributeError(name)
-        scene, ts, ys = self.scene, self.ts, self.ys
+        scene = self.scene
         last = _LAST_OUTPUTS[0]  # (one read: another thread may replace it)
         if last[0] is scene:
             # The scene of the last access (`jd.simulate` keeps the caller's scene, so every
             # run of it): its leaves, output names and program, without flattening the scene
-            # or looking them up; and the program's call, where the times and states are
-            # those of the last access too.
-            _, leaves, names, program, last_ts, last_ys, call = last
+            # or looking them up; and the program's call, where this is the last access's
+            # trajectory too.
+            _, leaves, names, program, last_traj, call = last
             if name in names:
-                if ts is not last_ts or ys is not last_ys:
+                ts, ys = self.ts, self.ys
+                if last_traj() is not self:
                     call = program.resolve(leaves, ts, ys)
-                    if _concrete_arrays(ts, *jax.tree.leaves(ys)):
-                        _LAST_OUTPUTS[0] = (scene, leaves, names, program, ts, ys, call)
+                    _remember(self, scene, leaves, names, program, call)
                 return call(leaves, ts, ys)[name]
         flat = jax.tree_util.tree_flatten(scene)  # (once for both)
         names = Scene.output_names(scene, flat)  # (not a bound method: equinox wraps those)
         if name in names:
-            return _outputs(scene, ts, ys, flat, names)[name]
+            ts, ys = self.ts, self.ys
+            found = _outputs_call(scene, ts, ys, flat)
+            if found is None:
+                return _outputs_filtered(scene, ts, ys)[name]
+            program, call, leaves = found
+            _remember(self, scene, leaves, names, program, call)
+            return call(leaves, ts, ys)[name]
         raise AttributeError(
             f"Trajectory has no attribute {name!r}; derived outputs of this scene: {list(names)}"
         )
@@ -241,20 +248,25 @@ def _trajectory_program(name: str, fn, filtered, traj: Trajectory, *static):
 
 
 # The last concrete derived-output access: its scene (held, so that its identity cannot be
-# reused while it is here), the scene's leaves, output names and program, and the times,
-# states and program call of the access.
-_LAST_OUTPUTS: list = [(None,) * 7]
+# reused while it is here; a scene holds parameters), the scene's leaves, output names and
+# program, its trajectory (a weak reference: its samples are not kept alive) and the
+# program's call for that trajectory's times and states.
+_LAST_OUTPUTS: list = [(None, None, None, None, lambda: None, None)]
 
 
-def _outputs(scene: Scene, ts, ys, flat=None, names=None) -> dict[str, Array]:
-    """Every derived output at the times `ts`: one `jax.jit` program per scene structure,
-    called with arrays only (equinox's filtered call where the scene holds Python functions
-    or the values are traced). `flat`: the scene's `tree_flatten`, where the caller has it;
-    `names`: its output names, where the caller has them (the access is then remembered for
-    the next, `_LAST_OUTPUTS`)."""
+def _remember(traj, scene, leaves, names, program, call) -> None:
+    """Remember a derived-output access for the next (not one of traced times or states)."""
+    if _concrete_arrays(traj.ts, *jax.tree.leaves(traj.ys)):
+        _LAST_OUTPUTS[0] = (scene, leaves, names, program, weakref.ref(traj), call)
+
+
+def _outputs_call(scene: Scene, ts, ys, flat=None):
+    """The derived-output program of the scene's structure, its call for these times and
+    states and the scene's leaves; `None` where the scene holds anything but arrays (Python
+    functions, traced values: equinox's filtered call instead)."""
     leaves, treedef = flat if flat is not None else jax.tree_util.tree_flatten(scene)
     if not _concrete_arrays(*leaves):
-        return _outputs_filtered(scene, ts, ys)
+        return None
 
     def build(treedef):
         def outputs_program(leaves, ts, ys):
@@ -264,9 +276,17 @@ def _outputs(scene: Scene, ts, ys, flat=None, names=None) -> dict[str, Array]:
         return outputs_program
 
     program = _structure_program("outputs", treedef, (), build)
-    call = program.resolve(leaves, ts, ys)
-    if names is not None and _concrete_arrays(ts, *jax.tree.leaves(ys)):
-        _LAST_OUTPUTS[0] = (scene, leaves, names, program, ts, ys, call)
+    return program, program.resolve(leaves, ts, ys), leaves
+
+
+def _outputs(scene: Scene, ts, ys, flat=None) -> dict[str, Array]:
+    """Every derived output at the times `ts`: one `jax.jit` program per scene structure,
+    called with arrays only (equinox's filtered call where the scene holds Python functions
+    or the values are traced). `flat`: the scene's `tree_flatten`, where the caller has it."""
+    found = _outputs_call(scene, ts, ys, flat)
+    if found is None:
+        return _outputs_filtered(scene, ts, ys)
+    _, call, leaves = found
     return call(leaves, ts, ys)
 
 

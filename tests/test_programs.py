@@ -39,6 +39,7 @@ def stored(tmp_path, monkeypatch):
     # test_a_program_held_by_the_compilation_cache_is_not_stored_compiled).
     _programs._version()
     monkeypatch.setattr(_programs, "_VERSION", uuid.uuid4().hex)
+    monkeypatch.setattr(_programs, "_QUEUE", [])  # (none prepared by an earlier test)
     return tmp_path
 
 
@@ -344,3 +345,71 @@ def test_a_prepared_program_called_first_or_under_other_settings_is_made_by_the_
         out = other(np.arange(3.0, dtype=np.float32), np.asarray(0.5, np.float32))
     assert threads == ["MainThread"] and out["sum"].dtype == np.float32
     np.testing.assert_allclose(out["sum"], 2.0 * np.arange(3.0) + np.sin(0.5), rtol=1e-6)
+
+
+def test_a_prepared_program_never_leaves_a_call_waiting(stored, monkeypatch):
+    import threading
+
+    x, y = np.arange(3.0), np.asarray(0.5)
+    expected = 2.0 * x + np.sin(0.5)
+    # Two threads call before any compilation started: each gets the program.
+    threads, results = [], []
+    prepared = _traced_on(threads)
+    prepared.prepare(x, y)
+    callers = [threading.Thread(target=lambda: results.append(prepared(x, y)["sum"]),
+                                daemon=True) for _ in range(2)]
+    for c in callers:
+        c.start()
+    for c in callers:
+        c.join(timeout=60)
+    assert not any(c.is_alive() for c in callers) and len(results) == 2
+    for r in results:
+        np.testing.assert_allclose(r, expected, rtol=1e-15)
+    # A call interrupted while it compiles the program itself (Ctrl-C in a notebook): the
+    # next call compiles it.
+    again = _traced_on([])
+    again.prepare(np.zeros(4), y)
+    with monkeypatch.context() as m, pytest.raises(KeyboardInterrupt):
+        m.setattr(again, "_ready", lambda *a: (_ for _ in ()).throw(KeyboardInterrupt))
+        again(np.zeros(4), y)
+    np.testing.assert_allclose(again(np.arange(4.0), y)["sum"],
+                               2.0 * np.arange(4.0) + np.sin(0.5), rtol=1e-15)
+    # No thread to be had when a compilation starts: the prepared program's call makes it,
+    # and the program that was compiling is still stored.
+    monkeypatch.setattr(_programs, "_VERSION", uuid.uuid4().hex)
+    late = _traced_on([])
+    late.prepare(np.zeros(5), y)
+
+    def no_thread(*a, **k):
+        raise RuntimeError("can't start new thread")
+
+    calls, before = [], len(list(stored.glob("*.exe")))
+    program, leaves = _program(calls)
+    with monkeypatch.context() as m:
+        m.setattr(threading.Thread, "start", no_thread)
+        program(leaves, SCENE.state(theta=0.2), np.asarray(5.0))
+    assert calls == [1] and len(list(stored.glob("*.exe"))) == before + 1
+    np.testing.assert_allclose(late(np.arange(5.0), y)["sum"],
+                               2.0 * np.arange(5.0) + np.sin(0.5), rtol=1e-15)
+
+
+def test_preparations_a_function_did_not_use_are_dropped_when_it_ends(stored):
+    x, y = np.arange(3.0), np.asarray(0.5)
+    threads = []
+    prepared = _traced_on(threads)
+
+    @_programs.cancels_unused_preparations
+    def interrupted_fit():
+        prepared.prepare(x, y)
+        assert len(_programs._QUEUE) == 1
+        raise ValueError("stopped before its summaries")
+
+    with pytest.raises(ValueError):
+        interrupted_fit()
+    assert not _programs._QUEUE  # nothing left for a later compilation to start
+    calls = []
+    program, leaves = _program(calls)
+    program(leaves, SCENE.state(theta=0.2), np.asarray(5.0))
+    assert threads == []  # not compiled for nothing on a worker
+    np.testing.assert_allclose(prepared(x, y)["sum"], 2.0 * x + np.sin(0.5), rtol=1e-15)
+    assert threads == ["MainThread"]

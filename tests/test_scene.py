@@ -168,3 +168,12 @@ def test_derived_outputs_of_alternating_trajectories_are_their_own():
                         ts=jnp.linspace(0, 2, 4))
     np.testing.assert_allclose(fewer.angular_momentum,
                                np.asarray(fewer.ys["omega"]) * np.asarray(INERTIA), rtol=1e-14)
+    # The last access's trajectory is not kept alive by that memory (its samples can be
+    # large: a long run's, on a device).
+    import gc
+    import weakref
+
+    samples = weakref.ref(fewer.ys["omega"])
+    del fewer
+    gc.collect()
+    assert samples() is None

@@ -45,6 +45,7 @@ from jaxtyping import Array, ArrayLike, Float
 
 from .._custom_types import State
 from .._outcome import is_success
+from .._programs import cancels_unused_preparations
 from .._rotations import quat_conjugate, quat_multiply
 from .._scene import Scene
 from .._simulate import check_tolerances, simulate_unchecked
@@ -986,6 +987,7 @@ def _auto_segments(clock, ts) -> int:
     return int(np.ceil(float(ts[-1] - ts[0]) * fastest / _TURNS))
 
 
+@cancels_unused_preparations
 def fit(
     scene: Scene,
     ts: Float[ArrayLike, " N"],
