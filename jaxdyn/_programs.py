@@ -292,8 +292,14 @@ def _start_queued() -> None:
     with _LOCK:
         queued = list(_QUEUE)
         _QUEUE.clear()
-    for pending in queued:
-        pending.start()
+    for i, pending in enumerate(queued):
+        try:
+            pending.start()
+        except BaseException:  # (an interrupt): the rest are left to their calls
+            for rest in queued[i:]:
+                rest.args = None
+                rest.done.set()
+            raise
 
 
 _SCOPE = threading.local()
