@@ -164,7 +164,7 @@ class StoredProgram:
             return
         context = _trace_context()
         if context is not None:
-            self.calls[key] = _Pending(self, args, path, context)
+            self.calls[key] = _Pending(self, key, args, path, context)
 
     def _path(self, key) -> Path | None:
         """Where the program of this signature is stored, or `None` (not stored)."""
@@ -239,10 +239,11 @@ class _Pending:
     starts (`_start_queued`). Its thread traces only under the caller's configuration
     (settings such as `jax.default_device` are per thread): otherwise it does nothing, and
     the call makes the program itself. The thread is not a daemon: a process that ends while
-    it compiles waits for it (at most one compilation)."""
+    it compiles waits for it."""
 
-    def __init__(self, program: "StoredProgram", args, path: Path, context):
-        self.program, self.args, self.path, self.context = program, args, path, context
+    def __init__(self, program: "StoredProgram", key, args, path: Path, context):
+        self.program, self.key, self.args = program, key, args
+        self.path, self.context = path, context
         self.done = threading.Event()
         self.result = None
         with _LOCK:
@@ -275,8 +276,11 @@ class _Pending:
             if self not in _QUEUE:
                 return False
             _QUEUE.remove(self)
+            self.done.set()  # (here: an interrupt cannot come between the two)
         self.args = None
-        self.done.set()
+        calls = self.program.calls
+        if calls.get(self.key) is self:  # (a later `prepare` of this signature queues anew)
+            calls.pop(self.key, None)
         return True
 
     def wait(self):
@@ -481,7 +485,8 @@ def _read_executable(path: Path):
 def _write(path: Path, data: bytes) -> None:
     """`data` written to `path` atomically (concurrent writers agree); nothing where the
     folder cannot be written (read-only, full: the program is still used, only not kept)."""
-    tmp = path.with_suffix(f"{path.suffix}.{os.getpid()}.tmp")
+    # (One temporary file per writer: two threads of a process may store one program.)
+    tmp = path.with_suffix(f"{path.suffix}.{os.getpid()}.{threading.get_ident()}.tmp")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp.write_bytes(data)

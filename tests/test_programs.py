@@ -407,6 +407,9 @@ def test_preparations_a_function_did_not_use_are_dropped_when_it_ends(stored):
     with pytest.raises(ValueError):
         interrupted_fit()
     assert not _programs._QUEUE  # nothing left for a later compilation to start
+    prepared.prepare(x, y)  # a later fit's preparation of the signature is queued anew
+    assert len(_programs._QUEUE) == 1
+    _programs._QUEUE[0].cancel()
     calls = []
     program, leaves = _program(calls)
     program(leaves, SCENE.state(theta=0.2), np.asarray(5.0))
