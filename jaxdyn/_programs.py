@@ -27,7 +27,10 @@ A program whose inputs' shapes are known before its inputs are computed can be `
 is then traced and compiled on a worker thread while the caller's thread compiles another
 program (XLA:CPU compiles a program on one core and releases Python's lock meanwhile), and a
 later call waits for it. A cold `jaxdyn fit` prepares its summaries' program as its
-Levenberg-Marquardt program compiles.
+Levenberg-Marquardt program compiles. A program whose inputs' shapes are known only from
+another program's outputs is prepared from those outputs' shapes as that program is lowered,
+before XLA compiles it (`when_lowered`; `prepare(..., then=...)` for a chain): a cold `jaxdyn
+run` prepares its resampling and summary programs as its simulation compiles.
 
 One case keeps the tracing: a program that JAX's persistent cache already holds when it is
 first compiled under a key (the same program under another key, or one whose stored file was
@@ -38,6 +41,7 @@ the `.bin`/`.tree` exports written before 28 Nov 2026) are never read again; the
 cache and may be removed at any time.
 """
 
+import contextlib
 import copyreg
 import functools
 import hashlib
@@ -144,7 +148,7 @@ class StoredProgram:
             call = self.calls[key] = self._load(args, key)
         return call
 
-    def prepare(self, *args):
+    def prepare(self, *args, then=None):
         """Have the program for the signature of `args` (their structure, shapes and dtypes;
         the values do not matter) made ready on a worker thread while this thread next
         compiles another stored program: XLA:CPU compiles a program on one core, without
@@ -152,7 +156,10 @@ class StoredProgram:
         (a fit's summaries, known at its start) is traced and compiled on the other core,
         off the caller's path. A call of this signature then waits for it; one that comes
         first makes the program itself. Nothing where the program is stored already (it is
-        read when called), not stored at all, or the arguments are traced."""
+        read when called), not stored at all, or the arguments are traced. The arguments may
+        be `jax.ShapeDtypeStruct`s. `then(outputs)`: called on the worker thread with the
+        outputs' shapes once the program is lowered (`when_lowered`), to prepare the programs
+        that take its outputs."""
         leaves, in_tree = jax.tree_util.tree_flatten(args)
         if any(isinstance(x, jax.core.Tracer) for x in leaves):
             return
@@ -164,7 +171,7 @@ class StoredProgram:
             return
         context = _trace_context()
         if context is not None:
-            self.calls[key] = _Pending(self, key, args, path, context)
+            self.calls[key] = _Pending(self, key, args, path, context, then)
 
     def _path(self, key) -> Path | None:
         """Where the program of this signature is stored, or `None` (not stored)."""
@@ -241,9 +248,9 @@ class _Pending:
     the call makes the program itself. The thread is not a daemon: a process that ends while
     it compiles waits for it."""
 
-    def __init__(self, program: "StoredProgram", key, args, path: Path, context):
+    def __init__(self, program: "StoredProgram", key, args, path: Path, context, then=None):
         self.program, self.key, self.args = program, key, args
-        self.path, self.context = path, context
+        self.path, self.context, self.then = path, context, then
         self.done = threading.Event()
         self.result = None
         with _LOCK:
@@ -256,11 +263,12 @@ class _Pending:
         def work():
             try:
                 if _trace_context() == self.context:
-                    self.result = self.program._ready(self.args, self.path)
+                    with when_lowered(self.then):
+                        self.result = self.program._ready(self.args, self.path)
             except Exception:  # made again by the call, which raises what it raises
                 self.result = None
             finally:
-                self.args = None
+                self.args = self.then = None
                 self.done.set()
 
         try:
@@ -307,6 +315,34 @@ def _start_queued() -> None:
 
 
 _SCOPE = threading.local()
+
+
+@contextlib.contextmanager
+def when_lowered(callback):
+    """Within: `callback(outputs)`, with the outputs' shapes (`jax.ShapeDtypeStruct`s in the
+    outputs' tree), as the next stored program that this thread compiles is lowered, before
+    XLA compiles it, so that the programs `callback` `prepare`s from them are traced and
+    compiled on another core meanwhile (`None`: nothing). Called at most once; an exception
+    it raises is dropped (the programs it would have prepared are made by their calls)."""
+    outer = getattr(_SCOPE, "lowered", None)
+    _SCOPE.lowered = callback
+    try:
+        yield
+    finally:
+        _SCOPE.lowered = outer
+
+
+def _announce_lowered(program, args, found: list) -> None:
+    callback = getattr(_SCOPE, "lowered", None)
+    if callback is None:
+        return
+    _SCOPE.lowered = None  # (once: the program this thread compiles next, not the ones after)
+    try:
+        # (`eval_shape` reads the tracing just done, and keeps weak types: `Lowered.out_info`
+        # drops them, and a weak-typed input is another signature.)
+        callback(jax.tree_util.tree_unflatten(found[0], program.eval_shape(*args)))
+    except Exception:
+        pass
 
 
 def cancels_unused_preparations(fn):
@@ -404,6 +440,7 @@ def _compile_and_store(path: Path | None, program, args, found: list):
         lowered = program.lower(*args)
     except Exception:  # called as usual
         return None
+    _announce_lowered(program, args, found)
     _start_queued()  # (their tracing runs while XLA compiles this one)
     _listen_for_cache_hits()
     _HITS.count = 0  # (this thread's compilation's, not a prepared one's)

@@ -1,7 +1,9 @@
 """`simulate`: one entry point over `diffrax.diffeqsolve` for every scene."""
 
+import contextlib
 import functools
 import math
+import threading
 
 import diffrax as dfx
 import equinox as eqx
@@ -14,7 +16,7 @@ from ._body import AbstractBody
 from ._custom_types import State
 from ._hybrid import finite, integrate
 from ._outcome import Outcome
-from ._programs import _signature
+from ._programs import _signature, when_lowered
 from ._scene import Scene
 from ._solution import (  # noqa: F401  (_PROGRAMS: read by benchmarks/latency.py)
     _PROGRAMS,
@@ -291,20 +293,46 @@ def _fast_simulate(scene, y0, t1, t0, ts, rtol, atol, max_steps, events, dense):
         options = (max_steps, bool(events), bool(dense))
         program = _structure_program("simulate", treedef, options,
                                      lambda treedef: _build(treedef, *options))
-        call = known[key] = program.resolve(leaves, y0, times, ts)
+        then = getattr(_THEN, "fn", None)
+        with when_lowered(None if then is None else lambda out: then(_trajectory(scene, out))):
+            call = known[key] = program.resolve(leaves, y0, times, ts)
     out = call(leaves, y0, times, ts)
     if isinstance(out[_OUTCOME], jax.core.Tracer):  # concrete inputs under the caller's `jit`
         return None  # (the host cannot see the outcome: the checked program, below)
-    # Built as equinox unflattens a module (its fields were checked inside the program), not
-    # through `__init__`: the scene is the caller's own, not a copy from the device.
-    traj = object.__new__(Trajectory)
-    object.__setattr__(traj, "scene", scene)
-    for name, value in zip(_FIELDS, out):
-        object.__setattr__(traj, name, value)
+    traj = _trajectory(scene, out)
     if int(np.asarray(out[_OUTCOME])) not in _SUCCESS:  # (`int()` of a jax array: 10 us more)
         _check_state_values(scene, y0)  # raises where the initial state was not finite
         raise_on_failure(traj)
     return traj
+
+
+def _trajectory(scene: Scene, out) -> Trajectory:
+    """The fast path's program's outputs as a `Trajectory` of the caller's scene. Built as
+    equinox unflattens a module (its fields were checked inside the program), not through
+    `__init__`: the scene is the caller's own, not a copy from the device."""
+    traj = object.__new__(Trajectory)
+    object.__setattr__(traj, "scene", scene)
+    for name, value in zip(_FIELDS, out):
+        object.__setattr__(traj, name, value)
+    return traj
+
+
+_THEN = threading.local()
+
+
+@contextlib.contextmanager
+def then_prepare(fn):
+    """Within: where `simulate` compiles the program of a new structure on this thread,
+    `fn(shape)` is called as that program is lowered, before XLA compiles it, with the
+    trajectory it will return (its scene the caller's, its arrays `jax.ShapeDtypeStruct`s), so
+    that the programs that follow the run can be `prepare`d to compile on another core
+    meanwhile (`jaxdyn run`: `_solution.prepare_report`)."""
+    outer = getattr(_THEN, "fn", None)
+    _THEN.fn = fn
+    try:
+        yield
+    finally:
+        _THEN.fn = outer
 
 
 def _build(treedef, max_steps, events, dense):

@@ -224,9 +224,11 @@ def _structure_program(name: str, treedef, options, build):
     """The `jax.jit` program `build(treedef)` for one scene structure (and static options),
     built once: later calls pass only arrays, so dispatch costs what `jax.jit`'s costs."""
     key = (name, treedef, options)
-    if key not in _PROGRAMS:
-        _PROGRAMS[key] = StoredProgram(name, treedef, options, build(treedef))
-    return _PROGRAMS[key]
+    program = _PROGRAMS.get(key)
+    if program is None:  # (one for all threads: a prepared program's worker may make it)
+        program = _PROGRAMS.setdefault(key, StoredProgram(name, treedef, options,
+                                                          build(treedef)))
+    return program
 
 
 def _trajectory_program(name: str, fn, filtered, traj: Trajectory, *static):
@@ -236,7 +238,11 @@ def _trajectory_program(name: str, fn, filtered, traj: Trajectory, *static):
     leaves, treedef = jax.tree_util.tree_flatten(traj)
     if not _concrete_arrays(*leaves):
         return filtered(traj, *static)
+    return _trajectory_stored(name, fn, treedef, static)(leaves)
 
+
+def _trajectory_stored(name: str, fn, treedef, static) -> StoredProgram:
+    """The program of `_trajectory_program` for one trajectory structure."""
     def build(treedef):
         def program(leaves):
             return fn(jax.tree_util.tree_unflatten(treedef, leaves), *static)
@@ -244,7 +250,33 @@ def _trajectory_program(name: str, fn, filtered, traj: Trajectory, *static):
         program.__name__ = program.__qualname__ = name
         return program
 
-    return _structure_program(name, treedef, static, build)(leaves)
+    return _structure_program(name, treedef, static, build)
+
+
+def prepare_report(traj: Trajectory, num: int | None = None) -> None:
+    """Have the programs of `traj.resample(num).report()` (`num=None`: of `traj.report()`)
+    `prepare`d for a trajectory of `traj`'s structure, shapes and dtypes (its arrays may be
+    `jax.ShapeDtypeStruct`s: the shapes of a run not yet compiled, `_simulate.then_prepare`),
+    so that they are traced and compiled on another core while this thread compiles the run
+    (`StoredProgram.prepare`); the summary's once the resampling's outputs are known.
+    Nothing where the trajectory holds anything but arrays (its calls go through equinox's
+    filtered programs, not these)."""
+    def summary(traj):
+        leaves, treedef = jax.tree_util.tree_flatten(traj)
+        if _shapes_and_arrays(leaves):
+            _trajectory_stored("summary", _summary_of, treedef, ()).prepare(leaves)
+
+    if num is None:
+        summary(traj)
+        return
+    leaves, treedef = jax.tree_util.tree_flatten(traj)
+    if _shapes_and_arrays(leaves) and traj.interpolation is not None:
+        _trajectory_stored("resample", _resample_of, treedef, (num,)).prepare(
+            leaves, then=summary)
+
+
+def _shapes_and_arrays(leaves) -> bool:
+    return all(isinstance(x, jax.ShapeDtypeStruct) or _concrete_arrays(x) for x in leaves)
 
 
 # The last concrete derived-output access: its scene (held, so that its identity cannot be

@@ -416,3 +416,81 @@ def test_preparations_a_function_did_not_use_are_dropped_when_it_ends(stored):
     assert threads == []  # not compiled for nothing on a worker
     np.testing.assert_allclose(prepared(x, y)["sum"], 2.0 * x + np.sin(0.5), rtol=1e-15)
     assert threads == ["MainThread"]
+
+
+@pytest.fixture
+def compiled_on():
+    """The names of the programs XLA compiles during the test, with the thread of each."""
+    import threading
+
+    seen = []
+
+    def listen(event, duration, fun_name=None, **_):
+        if event == "/jax/core/compile/backend_compile_duration":
+            seen.append((str(fun_name).removeprefix("jit(").split("_")[0],
+                         threading.current_thread().name))
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    yield seen
+    jax.monitoring.unregister_event_duration_listener(listen)
+
+
+@pytest.mark.parametrize("samples", [None, 17])
+def test_a_run_prepares_its_resampling_and_summary_while_it_compiles(stored, monkeypatch,
+                                                                      compiled_on, samples):
+    # `jaxdyn run`: as the run's program is lowered, its resampling (`samples`) and summary
+    # are prepared from the shapes of its outputs, and compile on worker threads while this
+    # thread compiles the run; the calls that follow wait for them instead of compiling.
+    monkeypatch.setattr(_simulate, "_STRUCTURES", {})  # (this process's programs: none)
+    monkeypatch.setattr(_simulate, "_LAST", [(None, None, None)])
+    monkeypatch.setattr(_solution, "_PROGRAMS", {})
+    scene = jd.Scene(jd.RigidBody(np.array([1.0, 2.0, 2.5])))
+    y0 = scene.state(omega=[0.3, 1.1, -0.2])
+    options = dict(dense=True) if samples else dict(ts=np.linspace(0.0, 4.0, 9))
+    seen = compiled_on
+    shapes = []
+
+    def prepare(shape):
+        shapes.append(shape)
+        _solution.prepare_report(shape, samples)
+
+    with _simulate.then_prepare(prepare):
+        traj = jd.simulate(scene, y0, 4.0, **options)
+    if samples:
+        traj = traj.resample(samples)
+    report = traj.report()
+    programs = {name: thread for name, thread in seen if name in ("simulate", "resample",
+                                                                  "summary")}
+    assert programs == {"simulate": "MainThread", "summary": "jaxdyn-prepare",
+                        **({"resample": "jaxdyn-prepare"} if samples else {})}, seen
+    assert len([n for n, _ in seen if n in programs]) == len(programs)  # each compiled once
+    assert not _programs._QUEUE and len(shapes) == 1
+    assert isinstance(shapes[0].t_final, jax.ShapeDtypeStruct) and shapes[0].scene is scene
+    # The numbers: the torque-free closed form (an independent route), and the summary of
+    # equinox's filtered program (not the prepared one).
+    exact = scene.body.exact_omega(y0["omega"], traj.t_final)
+    np.testing.assert_allclose(report["omega_final"], exact, rtol=1e-7)
+    again = jax.tree.map(np.asarray, _solution._summary_filtered(traj))
+    np.testing.assert_array_equal(report["omega_final"], again["omega_final"])
+    np.testing.assert_array_equal(report["reference"]["omega_final"],
+                                  again["reference"]["omega_final"])
+    # A second run of the structure compiles nothing and calls nothing back.
+    with _simulate.then_prepare(prepare):
+        jd.simulate(scene, y0, 4.0, **options)
+    assert len(shapes) == 1
+
+
+def test_a_failing_preparation_costs_the_run_nothing(stored, monkeypatch):
+    monkeypatch.setattr(_simulate, "_STRUCTURES", {})
+    monkeypatch.setattr(_simulate, "_LAST", [(None, None, None)])
+    monkeypatch.setattr(_solution, "_PROGRAMS", {})
+    y0 = SCENE.state(theta=0.3)
+
+    def broken(shape):
+        raise RuntimeError("a bug in a preparation")
+
+    with _simulate.then_prepare(broken):
+        traj = jd.simulate(SCENE, y0, 5.0, dense=True)
+    np.testing.assert_allclose(traj.resample(5).report()["impact_time"],
+                               SCENE.body.fall_time(0.3), rtol=1e-8)
+    assert not _programs._QUEUE
