@@ -51,7 +51,9 @@ import pickle
 import platform
 import re
 import threading
+from collections.abc import Callable
 from pathlib import Path
+from typing import ParamSpec, TypeVar
 
 import jax
 import numpy as np
@@ -60,6 +62,8 @@ _TRUSTED = ("jaxdyn", "builtins", "diffrax", "equinox", "jax", "jaxlib", "optimi
             "lineax", "collections", "numpy")
 _CLASS = re.compile(r"<class '([\w.]+)'>")
 _DIR = "jaxdyn-programs"
+P = ParamSpec("P")
+R = TypeVar("R")
 
 
 def _register_sentinels() -> None:
@@ -301,17 +305,20 @@ class _Pending:
 
 def _start_queued() -> None:
     """Start preparing the queued programs (called as a compilation starts)."""
-    with _LOCK:
-        queued = list(_QUEUE)
-        _QUEUE.clear()
-    for i, pending in enumerate(queued):
-        try:
+    queued: list = []
+    started = 0
+    try:
+        with _LOCK:
+            queued = list(_QUEUE)
+            _QUEUE.clear()
+        for pending in queued:
             pending.start()
-        except BaseException:  # (an interrupt): the rest are left to their calls
-            for rest in queued[i:]:
-                rest.args = None
-                rest.done.set()
-            raise
+            started += 1
+    except BaseException:  # (an interrupt, wherever it comes): the rest are left to their
+        for rest in queued[started:]:  # calls
+            rest.args = None
+            rest.done.set()
+        raise
 
 
 _SCOPE = threading.local()
@@ -345,12 +352,12 @@ def _announce_lowered(program, args, found: list) -> None:
         pass
 
 
-def cancels_unused_preparations(fn):
+def cancels_unused_preparations(fn: Callable[P, R]) -> Callable[P, R]:
     """`fn` with the programs it `prepare`s on this thread and has not called by the time it
     returns or raises taken out of the queue (an interrupted fit leaves no compilation to be
     started later for nothing)."""
     @functools.wraps(fn)
-    def wrapper(*args, **kwargs):
+    def wrapper(*args: P.args, **kwargs: P.kwargs) -> R:
         outer = getattr(_SCOPE, "pending", None)
         _SCOPE.pending = mine = []
         try:
