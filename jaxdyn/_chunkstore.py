@@ -13,11 +13,11 @@ import json
 import os
 import socket
 import tempfile
-import warnings
 from pathlib import Path
 
 import numpy as np
 
+from ._errors import warn
 from ._validation import ParameterError
 
 _FORMAT = 1
@@ -130,8 +130,8 @@ class ChunkStore:
                 tmp.unlink()
             except FileNotFoundError:
                 continue
-            warnings.warn(f"removed {tmp}: the unfinished write of process {pid}, which no "
-                          "longer runs", stacklevel=3)
+            warn(f"removed {tmp}: the unfinished write of process {pid}, which no longer "
+                 "runs")
 
     def path(self, index: int) -> Path:
         return self.directory / f"chunk-{index:06d}.npz"
@@ -166,8 +166,7 @@ class ChunkStore:
             elif meta.get("sha256") != digest(arrays):
                 why = "checksum mismatch (corrupt)"
         if why is not None:
-            warnings.warn(f"chunk file {path} is {why}: computing the chunk again",
-                          stacklevel=3)
+            warn(f"chunk file {path} is {why}: computing the chunk again")
             self.recomputed.append(index)
             return None
         return arrays

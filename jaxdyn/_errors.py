@@ -24,3 +24,25 @@ def format_value(value) -> str:
 
 def message(field: str, value, allowed: str) -> str:
     return f"{field}={format_value(value)}: {allowed}"
+
+
+# The code a warning is never attributed to: jaxdyn and the libraries it calls back through
+# (a transformation of the caller's runs jaxdyn's code from inside JAX's).
+_LIBRARIES = ("jaxdyn", "jax", "jaxlib", "equinox", "diffrax", "optimistix", "lineax",
+              "functools", "contextlib")
+
+
+def warn(text: str, category: type[Warning] = UserWarning) -> None:
+    """`warnings.warn(text, category)` attributed to the caller's own line: the first frame
+    outside jaxdyn and its libraries, however deep inside them the warning is raised and
+    whatever wraps the public function (a fixed `stacklevel` pointed at a decorator's line
+    once `jd.fit` was wrapped). The immediate caller where every frame is jaxdyn's (the
+    command line)."""
+    import sys
+    import warnings
+
+    frame, level = sys._getframe(1), 1
+    while frame is not None and str(frame.f_globals.get("__name__", "")).split(".")[0] \
+            in _LIBRARIES:
+        frame, level = frame.f_back, level + 1
+    warnings.warn(text, category, stacklevel=level + 1 if frame is not None else 2)

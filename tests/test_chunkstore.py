@@ -82,8 +82,11 @@ def test_foreign_chunk_files_are_reported_and_recomputed(tmp_path):
     first = jd.ensemble(scene, scene.state(omega=[0.1, 1.0, 0.1]), 2.0, out=tmp_path, **kw)
     np.savez(tmp_path / "chunk-000001.npz", meta=np.frombuffer(b"[1, 2]", np.uint8),
              **{"data/x": np.zeros(3)})
-    with pytest.warns(UserWarning, match="not a jaxdyn chunk file"):
+    with pytest.warns(UserWarning, match="not a jaxdyn chunk file") as record:
         again = jd.ensemble(scene, scene.state(omega=[0.1, 1.0, 0.1]), 2.0, out=tmp_path, **kw)
+    # Attributed to the caller's line, not to jaxdyn's code.
+    assert {Path(w.filename).name for w in record} == {"test_chunkstore.py"}, \
+        [w.filename for w in record]
     assert again.recomputed_chunks == (1,)
     assert np.array_equal(again.values["omega"], first.values["omega"])
     (tmp_path / "chunk-000001.npz").unlink()

@@ -39,12 +39,12 @@ fit's Jacobians. The chains' agreement is checked by the split potential scale r
 (R-hat, Gelman et al. 2013) and their effective sample size.
 """
 
-import warnings
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from .._errors import warn
 
 RHAT_MAX = 1.05  # above this split R-hat, the chains disagree: a warning
 ACCEPTANCE_MIN = 0.3  # below this mean acceptance rate (NUTS aims at 0.8), a chain is stuck
@@ -244,21 +244,21 @@ def sample(problem, u, free, u_start, ts, data, weights, s2, cov, key, summaries
     out = jax.tree.map(np.asarray, jax.vmap(lambda x: summaries(sampled, x, free))(flat))
     bad = {k: round(v, 3) for k, v in report["rhat"].items() if not v <= RHAT_MAX}
     if bad:
-        warnings.warn(
+        warn(
             f"posterior: the halves of the {chains} chain(s) disagree (split R-hat above "
             f"{RHAT_MAX}: {bad}); "
             "the draws are not yet a sample of the posterior. Sample longer (larger warmup= "
             "and posterior=), or compare with the Gauss-Newton intervals (FitResult.std).",
-            RuntimeWarning, stacklevel=3)
+            RuntimeWarning)
     stuck = {i: round(a, 3) for i, a in enumerate(report["acceptance"])
              if not a >= ACCEPTANCE_MIN}
     if stuck:
         # (The split R-hat can miss it: a chain that hardly moves has almost no spread of
         # its own.)
-        warnings.warn(
+        warn(
             f"posterior: chain(s) {sorted(stuck)} accepted almost none of their proposals "
             f"(mean acceptance {stuck}, below {ACCEPTANCE_MIN}; NUTS aims at 0.8): their "
             "draws repeat a few points and are not a sample of the posterior. Sample again "
             "with another key=, or longer (larger warmup=).",
-            RuntimeWarning, stacklevel=3)
+            RuntimeWarning)
     return out, report
