@@ -11,6 +11,7 @@ import pkgutil
 import re
 import sys
 import time
+import warnings
 from typing import NoReturn
 
 
@@ -54,6 +55,10 @@ def _cache_arguments(p, dir_default, off_default) -> None:
                    help="do not use the compilation cache (also JAXDYN_CACHE_DIR=off)")
 
 
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    (file or sys.stderr).write(f"jaxdyn: warning: {' '.join(str(message).split())}\n")
+
+
 def _fail(message: str, status: int = 2) -> NoReturn:
     sys.stderr.write(f"jaxdyn: error: {message}\n")
     raise SystemExit(status)
@@ -80,9 +85,13 @@ def main(argv: list[str] | None = None) -> int:
 
     # The one error boundary: every failure ends in one line on stderr, never a traceback.
     try:
-        if not args.no_cache:
-            _enable_cache(args.cache_dir)
-        return commands[args.command].run(args)
+        with warnings.catch_warnings():
+            # A warning is one line too, without a source location (a user's line in Python;
+            # here the console script's, which tells the user nothing).
+            warnings.showwarning = _show_warning
+            if not args.no_cache:
+                _enable_cache(args.cache_dir)
+            return commands[args.command].run(args)
     except ParameterError as e:
         _fail(str(e), 2)
     except ModuleNotFoundError as e:

@@ -36,8 +36,8 @@ def warn(text: str, category: type[Warning] = UserWarning) -> None:
     """`warnings.warn(text, category)` attributed to the caller's own line: the first frame
     outside jaxdyn and its libraries, however deep inside them the warning is raised and
     whatever wraps the public function (a fixed `stacklevel` pointed at a decorator's line
-    once `jd.fit` was wrapped). The immediate caller where every frame is jaxdyn's (the
-    command line)."""
+    once `jd.fit` was wrapped). The immediate caller where every frame is jaxdyn's. (The
+    command line shows a warning as one line without its location: `_cli._show_warning`.)"""
     import sys
     import warnings
 

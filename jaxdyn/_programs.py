@@ -278,7 +278,7 @@ class _Pending:
         try:
             threading.Thread(target=work, name="jaxdyn-prepare").start()
         except Exception:  # no thread to be had (at the interpreter's shutdown): the call
-            self.args = None  # makes it
+            self.args = self.then = None  # makes it
             self.done.set()
 
     def cancel(self) -> bool:
@@ -289,7 +289,7 @@ class _Pending:
                 return False
             _QUEUE.remove(self)
             self.done.set()  # (here: an interrupt cannot come between the two)
-        self.args = None
+        self.args = self.then = None
         calls = self.program.calls
         if calls.get(self.key) is self:  # (a later `prepare` of this signature queues anew)
             calls.pop(self.key, None)
@@ -316,7 +316,7 @@ def _start_queued() -> None:
             started += 1
     except BaseException:  # (an interrupt, wherever it comes): the rest are left to their
         for rest in queued[started:]:  # calls
-            rest.args = None
+            rest.args = rest.then = None
             rest.done.set()
         raise
 

@@ -182,3 +182,25 @@ def test_recovery_scenes_run_from_the_command(capsys, scene):
     else:
         assert np.all(w < 1e-3)
     assert out["t_final"] == out["t1"]
+
+
+def test_a_warning_is_one_line_naming_what_happened(capsys, tmp_path):
+    # A warning of the command (here: a foreign chunk file in the run's folder, recomputed)
+    # is one line on stderr, like its errors: no source location, no warning class.
+    out = tmp_path / "mc"
+    argv = ("montecarlo", "torque-free", "--n", "8", "--chunk", "4", "--t1", "1", "--out",
+            str(out))
+    first = run_json(capsys, *argv)
+    np.savez(out / "chunk-000001.npz", meta=np.frombuffer(b"[1, 2]", np.uint8),
+             **{"data/x": np.zeros(3)})
+    status, stdout, err = run_cli(capsys, *argv, "--json")
+    assert status == 0, err
+    lines = err.strip().splitlines()
+    assert lines == [f"jaxdyn: warning: chunk file {out / 'chunk-000001.npz'} is not a "
+                     "jaxdyn chunk file (its meta is not a record): computing the chunk "
+                     "again"], err
+    again = json.loads(stdout)
+    assert again["recomputed_chunks"] == [1]
+    runs = ("timing", "recomputed_chunks", "resumed_chunks")
+    assert {k: v for k, v in again.items() if k not in runs} == \
+        {k: v for k, v in first.items() if k not in runs}
