@@ -42,7 +42,9 @@ def timing_since(t0: float) -> dict[str, float]:
     loaded from the persistent cache costs no compile time), loading stored compiled programs
     (`load_s`, jaxdyn's event), and the rest as `run_s`. Eager
     operations compiled while tracing nest inside the trace: `run_s` subtracts the union of
-    the intervals, not their sum."""
+    the intervals, not their sum. The phases sum the seconds of every thread: where programs
+    are prepared on worker threads (a cold `jaxdyn run`), `compile_s` can exceed the wall
+    time."""
     import time
 
     now = time.perf_counter()
