@@ -330,7 +330,11 @@ def when_lowered(callback):
     outputs' tree), as the next stored program that this thread compiles is lowered, before
     XLA compiles it, so that the programs `callback` `prepare`s from them are traced and
     compiled on another core meanwhile (`None`: nothing). Called at most once; an exception
-    it raises is dropped (the programs it would have prepared are made by their calls)."""
+    it raises is dropped (the programs it would have prepared are made by their calls).
+    `None` leaves an enclosing callback in place."""
+    if callback is None:
+        yield
+        return
     outer = getattr(_SCOPE, "lowered", None)
     _SCOPE.lowered = callback
     try:

@@ -326,7 +326,8 @@ def then_prepare(fn):
     `fn(shape)` is called as that program is lowered, before XLA compiles it, with the
     trajectory it will return (its scene the caller's, its arrays `jax.ShapeDtypeStruct`s), so
     that the programs that follow the run can be `prepare`d to compile on another core
-    meanwhile (`jaxdyn run`: `_solution.prepare_report`)."""
+    meanwhile (`jaxdyn run`: `_solution.prepare_report`). (A run that then fails leaves
+    them compiling: the process waits for them before it exits.)"""
     outer = getattr(_THEN, "fn", None)
     _THEN.fn = fn
     try:

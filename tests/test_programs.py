@@ -486,11 +486,29 @@ def test_a_failing_preparation_costs_the_run_nothing(stored, monkeypatch):
     monkeypatch.setattr(_solution, "_PROGRAMS", {})
     y0 = SCENE.state(theta=0.3)
 
+    called = []
+
     def broken(shape):
+        called.append(shape)
         raise RuntimeError("a bug in a preparation")
 
     with _simulate.then_prepare(broken):
         traj = jd.simulate(SCENE, y0, 5.0, dense=True)
+    assert len(called) == 1
     np.testing.assert_allclose(traj.resample(5).report()["impact_time"],
                                SCENE.body.fall_time(0.3), rtol=1e-8)
     assert not _programs._QUEUE
+
+
+def test_when_lowered_calls_back_once_for_the_next_program_compiled(stored):
+    # The callback belongs to the next stored program this thread lowers, not the ones
+    # after; `when_lowered(None)` inside leaves it in place.
+    seen = []
+    first, second = _traced_on([]), _traced_on([])
+    x, y = np.arange(3.0), np.asarray(0.5)
+    with _programs.when_lowered(seen.append), _programs.when_lowered(None):
+        first(x, y)
+        second(np.arange(4.0), y)
+    assert len(seen) == 1
+    assert seen[0]["sum"].shape == (3,) and isinstance(seen[0]["sum"], jax.ShapeDtypeStruct)
+    assert seen[0]["n"].shape == () and seen[0]["n"].weak_type  # (its weak type kept)
