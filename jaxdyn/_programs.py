@@ -335,12 +335,19 @@ def when_lowered(callback):
     if callback is None:
         yield
         return
-    outer = getattr(_SCOPE, "lowered", None)
-    _SCOPE.lowered = callback
+    with thread_setting(_SCOPE, "lowered", callback):
+        yield
+
+
+@contextlib.contextmanager
+def thread_setting(local: threading.local, name: str, value):
+    """Within: `local.name` (a per-thread setting) is `value`; the enclosing one after."""
+    outer = getattr(local, name, None)
+    setattr(local, name, value)
     try:
         yield
     finally:
-        _SCOPE.lowered = outer
+        setattr(local, name, outer)
 
 
 def _announce_lowered(program, args, found: list) -> None:
@@ -362,12 +369,11 @@ def cancels_unused_preparations(fn: Callable[P, R]) -> Callable[P, R]:
     started later for nothing)."""
     @functools.wraps(fn)
     def wrapper(*args: P.args, **kwargs: P.kwargs) -> R:
-        outer = getattr(_SCOPE, "pending", None)
-        _SCOPE.pending = mine = []
+        mine: list = []
         try:
-            return fn(*args, **kwargs)
+            with thread_setting(_SCOPE, "pending", mine):
+                return fn(*args, **kwargs)
         finally:
-            _SCOPE.pending = outer
             for pending in mine:
                 pending.cancel()
 

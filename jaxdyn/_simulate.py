@@ -16,7 +16,7 @@ from ._body import AbstractBody
 from ._custom_types import State
 from ._hybrid import finite, integrate
 from ._outcome import Outcome
-from ._programs import _signature, when_lowered
+from ._programs import _signature, thread_setting, when_lowered
 from ._scene import Scene
 from ._solution import (  # noqa: F401  (_PROGRAMS: read by benchmarks/latency.py)
     _PROGRAMS,
@@ -328,12 +328,8 @@ def then_prepare(fn):
     that the programs that follow the run can be `prepare`d to compile on another core
     meanwhile (`jaxdyn run`: `_solution.prepare_report`). (A run that then fails leaves
     them compiling: the process waits for them before it exits.)"""
-    outer = getattr(_THEN, "fn", None)
-    _THEN.fn = fn
-    try:
+    with thread_setting(_THEN, "fn", fn):
         yield
-    finally:
-        _THEN.fn = outer
 
 
 def _build(treedef, max_steps, events, dense):
