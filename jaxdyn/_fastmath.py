@@ -91,6 +91,7 @@ _NESTED = {"pjit": "jaxpr", "jit": "jaxpr", "closed_call": "call_jaxpr",
 def _evaluate(jaxpr, consts, args) -> list:
     """Evaluate `jaxpr`, with `sin` and `cos` by `sincos` (nested calls included)."""
     env = {}
+    trig = {}  # sin and cos of one variable share one `sincos`
 
     def read(v):
         return v.val if isinstance(v, Literal) else env[v]
@@ -101,7 +102,11 @@ def _evaluate(jaxpr, consts, args) -> list:
         ins = [read(v) for v in eqn.invars]
         name = eqn.primitive.name
         if name in ("sin", "cos") and jnp.issubdtype(ins[0].dtype, jnp.floating):
-            outs = [sincos(ins[0])[0 if name == "sin" else 1]]
+            x = eqn.invars[0]
+            pair = sincos(ins[0]) if isinstance(x, Literal) else trig.get(x)
+            if pair is None:
+                pair = trig[x] = sincos(ins[0])
+            outs = [pair[0 if name == "sin" else 1]]
         elif name in _NESTED and _NESTED[name] in eqn.params:
             sub = eqn.params[_NESTED[name]]
             outs = _evaluate(sub.jaxpr, sub.consts, ins)
