@@ -52,7 +52,8 @@ def _sorted(inertia, omega0):
     dtype = inertia.dtype
     omega0 = jnp.asarray(omega0, dtype)
     perm = jnp.argsort(inertia)
-    parity = jnp.round(jnp.linalg.det(jnp.eye(3, dtype=dtype)[perm]))
+    # The permutation's sign, exactly: prod_{i<j} (p_j - p_i) is +-2 for a permutation of 0..2.
+    parity = ((perm[1] - perm[0]) * (perm[2] - perm[0]) * (perm[2] - perm[1]) // 2).astype(dtype)
     return inertia[perm], parity * omega0[perm], perm, parity
 
 
@@ -120,11 +121,42 @@ def _axisymmetric(moments, omega, t):
     return w.at[..., a].set(omega[a] * jnp.ones_like(t)).at[..., b].set(wb).at[..., c].set(wc)
 
 
+def _sinhc(x):
+    """`sinh(sqrt(x)) / sqrt(x)` for `x >= 0` and `sin(sqrt(-x)) / sqrt(-x)` for `x < 0`: the
+    entire function `sum_k x^k / (2k + 1)!`, smooth through 0 (its series where `|x| < 1`)."""
+    small = jnp.abs(x) < 1
+    r = jnp.sqrt(jnp.where(small, 1.0, jnp.abs(x)))
+    wide = jnp.where(x > 0, jnp.sinh(r), jnp.sin(r)) / r
+    xs = jnp.where(small, x, 0.0)
+    series = jnp.ones_like(xs)
+    for k in range(12, 0, -1):  # Horner; the first term left out is below 1 / 25!
+        series = 1.0 + xs * series / ((2 * k) * (2 * k + 1))
+    return jnp.where(small, series, wide)
+
+
+def spin_flow(jac, t):
+    """`expm(jac t)` for each `t`, where `jac` is Euler's equations' Jacobian at a spin about a
+    principal axis (or at rest): its trace and determinant are zero, so `jac^3 = mu^2 jac`
+    with `mu^2 = tr(jac^2) / 2` (Cayley-Hamilton) and
+
+        expm(jac t) = I + t S(mu^2 t^2) jac + t^2 G(mu^2 t^2) jac^2,
+
+    `S(x) = sinh(sqrt x) / sqrt x` (growing about the intermediate axis, `mu^2 > 0`; turning,
+    `sin`, about the others), `G(x) = S(x / 4)^2 / 2 = (cosh(sqrt x) - 1) / x`. A few dozen
+    operations where `jax.scipy.linalg.expm` under `vmap` compiles five Pade approximants and
+    a linear solve (checked against it in the tests)."""
+    mu2 = 0.5 * jnp.sum(jac * jac.T)
+    x = mu2 * t * t
+    s = (t * _sinhc(x))[..., None, None]
+    g = (0.5 * t * t * _sinhc(0.25 * x) ** 2)[..., None, None]
+    return jnp.eye(3, dtype=jac.dtype) + s * jac + g * (jac @ jac)
+
+
 def _equilibrium(moments, omega, t):
     """A spin about a principal axis (or rest): constant in value; the derivative with respect
     to the initial rates is the linearised flow `expm(J t)` (growing for the intermediate axis)."""
     jac = jax.jacfwd(lambda w: jnp.cross(moments * w, w) / moments)(omega)
-    flow = jax.vmap(lambda tt: jax.scipy.linalg.expm(jac * tt))(t.reshape(-1))
+    flow = spin_flow(jac, t.reshape(-1))
     delta = omega - jax.lax.stop_gradient(omega)  # zero in value, carries the tangent
     w = jax.lax.stop_gradient(omega) + flow @ delta
     return w.reshape(t.shape + (3,))

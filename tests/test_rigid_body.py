@@ -278,3 +278,61 @@ def test_exact_solution_gradient_when_a_rate_is_zero(omega0):
     fd = np.stack([central_difference(lambda w, i=i: f(w)[i], np.asarray(w0), eps=1e-6)
                    for i in range(3)])
     assert np.allclose(jac, fd, rtol=tol(FINITE_DIFF), atol=1e-8)
+
+
+SPINS = [([2.0, 1.0, 2.5], [0.0, 0.0, 1.2]),  # about the major axis
+         ([2.0, 1.0, 2.5], [0.8, 0.0, 0.0]),  # about the intermediate axis (unstable)
+         ([2.0, 1.0, 2.5], [0.0, -0.7, 0.0]),  # about the minor axis
+         ([1.0, 1.0, 1.8], [0.6, 0.0, 0.0]),  # about a transverse axis of a symmetric body
+         ([1.0, 2.0, 3.0], [0.0, 0.0, 0.0])]  # at rest
+
+
+@pytest.mark.parametrize("inertia, omega0", SPINS)
+def test_linearised_flow_of_a_spin_is_the_matrix_exponential(inertia, omega0):
+    # The closed form of expm(J t) at a principal-axis spin (Cayley-Hamilton), from t = 0
+    # through the series' range (|mu^2 t^2| < 1) to growth by a factor of about 1e6, against
+    # the Taylor series scaled and squared in NumPy's long double (64-bit mantissa here), and
+    # against jax.scipy.linalg.expm (Pade approximants), which it replaces: that one is off by
+    # up to 1e-11 of the largest entry here, its squarings' round-off.
+    from jaxdyn._free_body import spin_flow
+
+    moments, w = jnp.asarray(inertia), jnp.asarray(omega0)
+    jac = jax.jacfwd(lambda v: jnp.cross(moments * v, v) / moments)(w)
+    ts = jnp.asarray([0.0, 1e-9, 0.05, 0.3, 1.0, 2.2, 7.0, 40.0])
+    got = np.asarray(spin_flow(jac, ts))
+
+    def expm_long(a):
+        a = np.asarray(a, np.longdouble)
+        squarings = max(0, int(np.ceil(np.log2(max(np.abs(a).sum(0).max(), 1e-300)))) + 6)
+        b = a / np.longdouble(2.0) ** squarings
+        out, term = np.eye(3, dtype=np.longdouble), np.eye(3, dtype=np.longdouble)
+        for k in range(1, 25):
+            term = term @ b / k
+            out = out + term
+        for _ in range(squarings):
+            out = out @ out
+        return out
+
+    want = np.stack([expm_long(np.asarray(jac) * float(t)) for t in ts]).astype(np.float64)
+    pade = np.stack([np.asarray(jax.scipy.linalg.expm(jac * t)) for t in ts])
+    scale = np.max(np.abs(want), axis=(1, 2), keepdims=True)
+    # (Where long double is float64, as on some ARM machines, the reference is only as good.)
+    assert np.max(np.abs(got - want) / scale) < (
+        1e-14 if np.finfo(np.longdouble).eps < 1e-18 else 1e-11)
+    assert np.max(np.abs(pade - want) / scale) < 1e-10  # (the independent route agrees)
+
+
+@pytest.mark.parametrize("inertia, omega0", SPINS[:4])
+def test_exact_rates_at_a_principal_axis_spin_have_the_linearised_derivative(inertia, omega0):
+    # At a spin the rates are constant; their derivative with respect to the initial rates is
+    # the linearised flow. Against central differences, which perturb the spin off the axis
+    # and so go through the general (elliptic) branch of the closed form.
+    def f(w):
+        return jd.torque_free_omega(jnp.asarray(inertia), w, jnp.asarray([0.0, 3.7, 12.0]))
+
+    w0 = np.asarray(omega0)
+    jac = np.asarray(jax.jacfwd(f)(jnp.asarray(w0)))  # (times, 3, 3)
+    fd = np.stack([np.stack([central_difference(lambda w, k=k, i=i: f(w)[k, i], w0, eps=1e-6)
+                             for i in range(3)]) for k in range(3)])
+    assert np.all(np.isfinite(jac))
+    np.testing.assert_allclose(jac, fd, rtol=0, atol=tol(FINITE_DIFF) * np.max(np.abs(fd)))
