@@ -217,8 +217,11 @@ def _torque_free_omega(inertia, omega0, t):
     w = jnp.stack([cn, sn, dn], axis=-1) * (p.signs * p.amp)
     w = jnp.where(p.at_saddle, p.omega0, w)
     general = jnp.zeros_like(w).at[..., p.perm].set(p.sign * w)  # original[perm] = sign * used
+    # (At rest where it is not used: the flow is then the identity, which neither overflows
+    # nor poisons the reverse-mode derivative through `jnp.where` with `inf * 0`.)
     sorted_frame = jnp.where(
-        equilibrium, _equilibrium(moments, omega, t), _axisymmetric(moments, omega, t)
+        equilibrium, _equilibrium(moments, jnp.where(equilibrium, omega, 0.0), t),
+        _axisymmetric(moments, omega, t)
     )
     sorted_frame = jnp.zeros_like(sorted_frame).at[..., perm].set(parity * sorted_frame)
     return jnp.where(equilibrium | axisymmetric, sorted_frame, general)
