@@ -125,7 +125,9 @@ def _equilibrium(inertia, omega, q0, t):
     zero = jnp.zeros((3, 3), dtype)
     flow_matrix = jnp.block([[jac, zero], [jnp.eye(3, dtype=dtype), -skew(w_bar)]])
     flat = t.reshape(-1)
-    flow = jax.vmap(lambda tt: jax.scipy.linalg.expm(flow_matrix * tt))(flat)
+    # (expm's default of at most 16 squarings gives NaN past |A t| = 5.4 * 2^16, about 1e5 s
+    # of a spin at 1 rad/s, and the NaN reached the value through `flow @ delta`.)
+    flow = jax.vmap(lambda tt: jax.scipy.linalg.expm(flow_matrix * tt, max_squarings=64))(flat)
     delta = omega - w_bar  # zero in value, carries the tangent
     dtheta = flow[:, 3:, :3] @ delta
     spin = _expq(w_bar * flat[:, None])

@@ -42,6 +42,22 @@ def central_difference(f, x, eps=1e-6):
         g[i] = (float(f(jnp.asarray(x + e))) - float(f(jnp.asarray(x - e)))) / (2 * e[i])
     return g
 
+def expm_longdouble(a):
+    """`expm(a)` by the Taylor series scaled and squared in NumPy's long double (a 64-bit
+    mantissa on x86; only float64 where long double is float64, as on some ARM machines),
+    rounded to float64: a reference for closed forms of matrix exponentials."""
+    a = np.asarray(a, np.longdouble)
+    squarings = max(0, int(np.ceil(np.log2(max(np.abs(a).sum(0).max(), 1e-300)))) + 6)
+    b = a / np.longdouble(2.0) ** squarings
+    out = term = np.eye(a.shape[0], dtype=np.longdouble)
+    for k in range(1, 25):
+        term = term @ b / k
+        out = out + term
+    for _ in range(squarings):
+        out = out @ out
+    return out.astype(np.float64)
+
+
 # The default relative tolerance of `jd.simulate`, and how far (as a multiple of it) a
 # well-conditioned result may lie from an exact reference at the defaults (issue 17).
 DEFAULT_RTOL = 1e-8

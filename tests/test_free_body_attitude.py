@@ -286,3 +286,24 @@ def test_shapes():
 def test_bad_quaternion(quaternion0, message):
     with pytest.raises(jd.ParameterError, match=re.escape(message)):
         jd.torque_free_attitude([1.0, 2.0, 2.5], [0.1, 0.2, 0.3], quaternion0, 1.0)
+
+
+@pytest.mark.parametrize("inertia, omega0", [([2.0, 1.0, 2.5], [0.0, 0.0, 1.2]),
+                                             ([2.0, 1.0, 2.5], [0.0, -0.7, 0.0]),
+                                             ([1.0, 2.0, 3.0], [0.0, 0.0, 0.0])])
+def test_spin_and_rest_over_long_times(inertia, omega0):
+    # A spin about a stable principal axis, and rest, out to t = 1e8: the rates stay put and
+    # the attitude turns about the axis (scipy's rotation of the rotation vector w t). The
+    # derivative branch (the linearised flow, zero in value) once made both NaN from about
+    # t = 1e5 on (jax.scipy.linalg.expm's default of 16 squarings).
+    ts = np.array([1e3, 3e5, 1e6, 1e8])
+    omega0 = np.asarray(omega0)
+    rates = np.asarray(jd.torque_free_omega(inertia, omega0, ts))
+    np.testing.assert_array_equal(rates, np.broadcast_to(omega0, rates.shape))
+    q = _attitude(inertia, omega0, Q0, ts)
+    expected = _dcm(Q0 / np.linalg.norm(Q0)) @ _rotvec_matrix(omega0, ts)
+    # (the angle w t carries the round-off of t's last bit: 1e8 * 1.2 * 2^-53 ~ 1e-8)
+    assert np.max(np.abs(_dcm(q) - expected)) < 1e-7
+    jac = np.asarray(jax.jacfwd(lambda w: jd.torque_free_attitude(inertia, w, Q0, ts[:3]))(
+        jnp.asarray(omega0, float)))
+    assert np.all(np.isfinite(jac))

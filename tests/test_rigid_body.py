@@ -11,6 +11,7 @@ from helpers import (
     INTEGRATION,
     ROUNDOFF,
     central_difference,
+    expm_longdouble,
     new_programs,
     scipy_euler,
     tol,
@@ -301,19 +302,7 @@ def test_linearised_flow_of_a_spin_is_the_matrix_exponential(inertia, omega0):
     ts = jnp.asarray([0.0, 1e-9, 0.05, 0.3, 1.0, 2.2, 7.0, 40.0])
     got = np.asarray(spin_flow(jac, ts))
 
-    def expm_long(a):
-        a = np.asarray(a, np.longdouble)
-        squarings = max(0, int(np.ceil(np.log2(max(np.abs(a).sum(0).max(), 1e-300)))) + 6)
-        b = a / np.longdouble(2.0) ** squarings
-        out, term = np.eye(3, dtype=np.longdouble), np.eye(3, dtype=np.longdouble)
-        for k in range(1, 25):
-            term = term @ b / k
-            out = out + term
-        for _ in range(squarings):
-            out = out @ out
-        return out
-
-    want = np.stack([expm_long(np.asarray(jac) * float(t)) for t in ts]).astype(np.float64)
+    want = np.stack([expm_longdouble(np.asarray(jac) * float(t)) for t in ts])
     pade = np.stack([np.asarray(jax.scipy.linalg.expm(jac * t)) for t in ts])
     scale = np.max(np.abs(want), axis=(1, 2), keepdims=True)
     # (Where long double is float64, as on some ARM machines, the reference is only as good.)
