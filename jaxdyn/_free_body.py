@@ -126,7 +126,10 @@ def _sinhc(x):
     entire function `sum_k x^k / (2k + 1)!`, smooth through 0 (its series where `|x| < 1`)."""
     small = jnp.abs(x) < 1
     r = jnp.sqrt(jnp.where(small, 1.0, jnp.abs(x)))
-    wide = jnp.where(x > 0, jnp.sinh(r), jnp.sin(r)) / r
+    grows = x > 0  # (each branch gets its argument only where it is used: a sinh that
+    # overflowed where sin is taken would make the discarded cotangent 0 * inf = NaN)
+    wide = jnp.where(grows, jnp.sinh(jnp.where(grows, r, 0.0)),
+                     jnp.sin(jnp.where(grows, 0.0, r))) / r
     xs = jnp.where(small, x, 0.0)
     series = jnp.ones_like(xs)
     for k in range(12, 0, -1):  # Horner; the first term left out is below 1 / 25!

@@ -328,13 +328,16 @@ def test_exact_rates_at_a_principal_axis_spin_have_the_linearised_derivative(ine
 
 
 @pytest.mark.parametrize("inertia, omega0", [([1.0, 2.0, 3.0], [3.0, 0.2, 1.0]),
-                                             ([1.0, 5.0, 5.5], [30.0, 20.0, 10.0])])
+                                             ([1.0, 5.0, 5.5], [30.0, 20.0, 10.0]),
+                                             ([2.0, 1.0, 2.5], [0.0, 0.0, 1.2]),  # spins about
+                                             ([2.0, 1.0, 2.5], [0.0, -0.7, 0.0])])  # stable axes
 def test_exact_rates_reverse_mode_is_finite_over_long_times(inertia, omega0):
     # The closed form evaluates its principal-axis-spin branch for every body and discards it
     # by jnp.where; a branch that overflows there (a linearised flow growing like exp(mu t))
     # would turn the discarded cotangent into inf * 0 = NaN. Reverse mode against forward
     # mode, out to t = 2000. (The branch now gets the rates only at a spin, at rest otherwise;
-    # before, both bodies gave NaN here, the second also with jax.scipy.linalg.expm.)
+    # before, the first two bodies gave NaN here, the second also with jax.scipy.linalg.expm.
+    # At a stable spin, the flow's sinh, overflowing where its sin is used, did the same.)
     def f(w):
         return jnp.sum(jd.torque_free_omega(jnp.asarray(inertia), w, jnp.asarray([200.0, 2e3])))
 
@@ -342,3 +345,9 @@ def test_exact_rates_reverse_mode_is_finite_over_long_times(inertia, omega0):
     rev, fwd = np.asarray(jax.grad(f)(w0)), np.asarray(jax.jacfwd(f)(w0))
     assert np.all(np.isfinite(rev))
     np.testing.assert_allclose(rev, fwd, rtol=1e-9, atol=1e-12 * np.max(np.abs(fwd)))
+    # float32 overflows sooner (sinh past 89): finite there too, at t = 200.
+    def f32(w):
+        return jnp.sum(jd.torque_free_omega(jnp.asarray(inertia, jnp.float32), w,
+                                            jnp.asarray([200.0], jnp.float32)))
+
+    assert np.all(np.isfinite(np.asarray(jax.grad(f32)(jnp.asarray(omega0, jnp.float32)))))
