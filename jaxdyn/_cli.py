@@ -56,7 +56,7 @@ def _cache_arguments(p, dir_default, off_default) -> None:
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
-    (file or sys.stderr).write(f"jaxdyn: warning: {' '.join(str(message).split())}\n")
+    (file or sys.stderr).write(f"jaxdyn: warning: {_squeezed(message)}\n")
 
 
 def _fail(message: str, status: int = 2) -> NoReturn:
@@ -128,8 +128,13 @@ def _enable_cache(path: str | None) -> None:
                          f"{e.filename}); set JAXDYN_CACHE_DIR or --cache-dir\n")
 
 
+def _squeezed(text) -> str:
+    """`str(text)` on one line, its runs of white space one space."""
+    return " ".join(str(text).split())
+
+
 def _one_line(error: BaseException) -> str:
-    text = " ".join(str(error).split())
+    text = _squeezed(error)
     return (text[:300] + "...") if len(text) > 300 else (text or type(error).__name__)
 
 

@@ -155,11 +155,15 @@ def spin_flow(jac, t):
     return jnp.eye(3, dtype=jac.dtype) + s * jac + g * (jac @ jac)
 
 
+def euler_jacobian(moments, omega):
+    """The Jacobian of Euler's torque-free equations `w' = ((I w) x w) / I` at `omega`."""
+    return jax.jacfwd(lambda w: jnp.cross(moments * w, w) / moments)(omega)
+
+
 def _equilibrium(moments, omega, t):
     """A spin about a principal axis (or rest): constant in value; the derivative with respect
     to the initial rates is the linearised flow `expm(J t)` (growing for the intermediate axis)."""
-    jac = jax.jacfwd(lambda w: jnp.cross(moments * w, w) / moments)(omega)
-    flow = spin_flow(jac, t.reshape(-1))
+    flow = spin_flow(euler_jacobian(moments, omega), t.reshape(-1))
     delta = omega - jax.lax.stop_gradient(omega)  # zero in value, carries the tangent
     w = jax.lax.stop_gradient(omega) + flow @ delta
     return w.reshape(t.shape + (3,))

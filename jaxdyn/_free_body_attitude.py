@@ -94,7 +94,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from ._elliptic import _carlson_rj, ellipj
-from ._free_body import _check, _d, _safe_general, _setup, _sorted
+from ._free_body import _check, _d, _safe_general, _setup, _sorted, euler_jacobian
 from ._rotations import dcm_to_quat, quat_conjugate, quat_multiply, safe_norm, skew
 
 
@@ -121,7 +121,7 @@ def _equilibrium(inertia, omega, q0, t):
     `dw' = J dw`, `dtheta' = dw - w x dtheta`, with `q = q_spin ⊗ (1, dtheta / 2)`."""
     dtype = inertia.dtype
     w_bar = jax.lax.stop_gradient(omega)
-    jac = jax.jacfwd(lambda w: jnp.cross(inertia * w, w) / inertia)(w_bar)
+    jac = euler_jacobian(inertia, w_bar)
     zero = jnp.zeros((3, 3), dtype)
     flow_matrix = jnp.block([[jac, zero], [jnp.eye(3, dtype=dtype), -skew(w_bar)]])
     flat = t.reshape(-1)

@@ -295,10 +295,9 @@ def test_linearised_flow_of_a_spin_is_the_matrix_exponential(inertia, omega0):
     # the Taylor series scaled and squared in NumPy's long double (64-bit mantissa here), and
     # against jax.scipy.linalg.expm (Pade approximants), which it replaces: that one is off by
     # up to 1e-11 of the largest entry here, its squarings' round-off.
-    from jaxdyn._free_body import spin_flow
+    from jaxdyn._free_body import euler_jacobian, spin_flow
 
-    moments, w = jnp.asarray(inertia), jnp.asarray(omega0)
-    jac = jax.jacfwd(lambda v: jnp.cross(moments * v, v) / moments)(w)
+    jac = euler_jacobian(jnp.asarray(inertia), jnp.asarray(omega0))
     ts = jnp.asarray([0.0, 1e-9, 0.05, 0.3, 1.0, 2.2, 7.0, 40.0])
     got = np.asarray(spin_flow(jac, ts))
 
