@@ -3,13 +3,19 @@
 
 Errors: invalid input exits with status 2 and a one-line message; a failure at run time (a
 runtime check inside `jit`, an exhausted step budget) exits with status 1 and a one-line message.
+
+The console script is `console`: `main`, then the end of the process without the interpreter's
+teardown (see `_end`).
 """
 
 import argparse
+import atexit
 import importlib
+import os
 import pkgutil
 import re
 import sys
+import threading
 import time
 import warnings
 from typing import NoReturn
@@ -104,6 +110,11 @@ def main(argv: list[str] | None = None) -> int:
         _fail("out of memory: use a smaller --n, --chunk or --samples", 1)
     except UnicodeError as e:
         _fail(f"input is not UTF-8 text ({e.reason} at byte {getattr(e, 'start', '?')})", 2)
+    except BrokenPipeError:  # the reader of the output went away (`jaxdyn run | head`):
+        # quietly, as Python's documentation advises (no message on the closed stream's
+        # behalf; the rest of the output goes nowhere)
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 1
     except OSError as e:  # the paths the user named: missing, unwritable, a folder...
         where = f" {e.filename!r}" if e.filename else ""
         _fail(f"cannot use{where}: {e.strerror or e}", 2)
@@ -138,5 +149,45 @@ def _one_line(error: BaseException) -> str:
     return (text[:300] + "...") if len(text) > 300 else (text or type(error).__name__)
 
 
+def console() -> NoReturn:
+    """The `jaxdyn` command (and `python -m jaxdyn`): `main`, then `_end`."""
+    try:
+        status = main()
+    except SystemExit as e:
+        status = e.code
+    _end(status)
+
+
+def _end(status) -> NoReturn:
+    """End the process with `status` (as `SystemExit` takes it) once the command is done,
+    without the interpreter's teardown: that frees every module and JAX's compiled programs
+    one by one, 0.3-0.4 s of a 1-3 s command on 2 cores (`jaxdyn run`, cold and warm; the
+    exit handlers themselves take about 10 ms). What a normal exit does that matters is done
+    first, in its order: the threads that are not daemons (a program still compiling for the
+    persistent cache) are joined, the exit handlers run (`atexit`: JAX's, logging's,
+    `weakref.finalize`'s, a temporary directory's clean-up), and the output is flushed."""
+    if status is None:
+        code = 0
+    elif isinstance(status, int):
+        code = status
+    else:  # a message, as SystemExit prints it
+        sys.stderr.write(f"{status}\n")
+        code = 1
+    current = threading.current_thread()
+    for thread in threading.enumerate():
+        if thread is not current and not thread.daemon:
+            thread.join()
+    run_exit_handlers = getattr(atexit, "_run_exitfuncs", None)
+    if run_exit_handlers is None:  # (not CPython: the interpreter's own exit)
+        raise SystemExit(code)
+    run_exit_handlers()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (OSError, ValueError):  # a reader that went away, a closed stream: quietly,
+            code = code or 1  # as `main` ends on a broken pipe, but not with status 0
+    os._exit(code)
+
+
 if __name__ == "__main__":
-    raise SystemExit(main())
+    console()

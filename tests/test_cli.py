@@ -120,6 +120,43 @@ def test_console_script_fails_cleanly_without_traceback():
     assert proc.stderr.strip() == "jaxdyn: error: length=0: expected a positive finite number (m)"
 
 
+def test_the_command_ends_as_a_normal_exit_would(tmp_path, capsys):
+    """The console script skips the interpreter's teardown (`jaxdyn._cli._end`), but not what
+    a normal exit does: its status, its output in full when written to a pipe (buffered),
+    the exit handlers, and a thread that is not a daemon finishing its work."""
+    late = tmp_path / "late"
+    script = tmp_path / "console.py"
+    script.write_text(
+        "import atexit, sys, threading, time\n"
+        "from jaxdyn._cli import console\n"
+        "atexit.register(lambda: print('exit handler ran'))\n"
+        "def work():\n"
+        "    time.sleep(0.3)\n"
+        f"    open({str(late)!r}, 'w').write('done')\n"
+        "threading.Thread(target=work).start()\n"
+        "sys.argv = ['jaxdyn', *sys.argv[1:]]\n"
+        "console()\n")
+    listing = run_cli(capsys, "scenes")[1]
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONUNBUFFERED"}  # (buffered)
+    for argv, status in ((["scenes"], 0), (["run", "--t1", "-1"], 2), (["--help"], 0),
+                         (["no-such-command"], 2)):
+        late.unlink(missing_ok=True)
+        proc = subprocess.run([sys.executable, str(script), *argv], capture_output=True,
+                              text=True, timeout=120, env=env)
+        assert proc.returncode == status, (argv, proc.stderr)
+        assert proc.stdout.endswith("exit handler ran\n"), (argv, proc.stdout[-200:])
+        assert late.read_text() == "done", argv
+        if argv == ["scenes"]:
+            assert proc.stdout == listing + "exit handler ran\n"
+        if status == 2:
+            assert len(proc.stderr.strip().splitlines()) == 1 and "Traceback" not in proc.stderr
+    # A reader that goes away before the output is written (`jaxdyn ... | true`): no message.
+    proc = subprocess.run(["bash", "-c", f"{sys.executable} -m jaxdyn scenes | true; "
+                           "exit ${PIPESTATUS[0]}"], capture_output=True, text=True, timeout=120,
+                          env=env)
+    assert (proc.returncode, proc.stderr) == (1, "")
+
+
 def test_step_budget_exhaustion_is_an_error_not_a_truncation(capsys):
     status, out, err = run_cli(capsys, "run", "torque-free", "--max-steps", "20")
     assert status == 1 and out == ""

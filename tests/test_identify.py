@@ -697,6 +697,13 @@ def test_bad_arguments():
                initial=["theta", "theta_dot"], sigma=None)
     with pytest.raises(jd.ParameterError, match="method='newton'"):
         jd.fit(scene, ts, data, parameters={"length": jd.Positive()}, method="newton")
+    # Too few draws per chain for the split R-hat (each half of a chain needs two): refused
+    # before anything runs (it failed inside blackjax's diagnostics, after the sampling).
+    for posterior, chains in ((12, 4), (2, 1), (6, 2)):
+        with pytest.raises(jd.ParameterError, match=f"posterior={posterior} with chains="
+                           f"{chains}: .* at least {3 * chains + 1}"):
+            jd.fit(scene, ts, data, parameters={"length": jd.Positive()},
+                   posterior=posterior, chains=chains)
 
 
 class _NumpyRestart(jd.Unconstrained):

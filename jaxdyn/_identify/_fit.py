@@ -139,6 +139,7 @@ class _Problem(eqx.Module):
 
 
 _BIAS = "bias."  # fitted sensor biases are named "bias.<output>"
+_MIN_DRAWS_PER_CHAIN = 4  # the split R-hat and effective sample size need two per half
 
 
 def _rotation_error(q, q_measured):
@@ -1094,7 +1095,8 @@ def fit(
       a [`jaxdyn.ValidInertia`][] and a weakly informative Gaussian prior (standard
       deviation 10) on each other unconstrained component around the starting point (see
       `FitResult.posterior`). For where the Gauss--Newton intervals cannot be trusted, as
-      for the axes of a nearly axisymmetric body. Default 0: none.
+      for the axes of a nearly axisymmetric body. Default 0: none; otherwise at least four
+      draws per chain (`posterior >= 3 * chains + 1`), for the chains' split R-hat.
     - `chains`: the number of NUTS chains (run side by side, started dispersed around the
       optimum; `posterior` draws in all, each chain after its own `warmup`). Their
       agreement is checked (split R-hat in `FitResult.posterior_diagnostics`; a warning when
@@ -1140,6 +1142,11 @@ def fit(
         if not isinstance(value, int) or value < low:
             kind = "a positive" if low else "a non-negative"
             raise ParameterError(f"{field}={value!r}: must be {kind} integer")
+    if posterior and -(-posterior // chains) < _MIN_DRAWS_PER_CHAIN:
+        raise ParameterError(
+            f"posterior={posterior} with chains={chains}: each chain needs at least "
+            f"{_MIN_DRAWS_PER_CHAIN} draws (two per half, for the split R-hat), so posterior= "
+            f"must be 0 or at least {(_MIN_DRAWS_PER_CHAIN - 1) * chains + 1}")
     key = _as_key(key)
     if horizons is not None:
         horizons = tuple(float(h) for h in horizons)
