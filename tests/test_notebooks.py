@@ -42,5 +42,8 @@ def test_notebook_executes(path, monkeypatch):
         kernel_name="python3",
         timeout=600,
         resources={"metadata": {"path": str(NOTEBOOKS)}},
+        # Once the last cell has run, the kernel is ended at once, without its interpreter's
+        # teardown (freeing its compiled programs: 0.7 s of the falling rod's 8.4 s).
+        shutdown_kernel="immediate",
     )
     client.execute()  # raises CellExecutionError on the first failing cell; `nb` stays in memory
