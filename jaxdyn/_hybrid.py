@@ -68,6 +68,7 @@ from jaxtyping import Array
 from ._outcome import MESSAGES, Outcome, from_diffrax, is_success
 from ._solution import MergedInterpolation, Trajectory, too_many_switches
 from ._solvers._accepted import Reporting, Writing
+from ._solvers._fixed import FixedStep, with_root_finder_tolerances
 from ._solvers._recorded import Table, empty_table
 from ._solvers._sampled import Samples
 from ._tolerance import ScaledPIDController
@@ -218,10 +219,8 @@ class _Run:
         self.record = dense and self.segments > 1
         self.diffrax_dense = dense and not self.record
         # Sample times saved from each accepted step (`Samples`): `SaveAt(ts)` of traced times
-        # carries diffrax's runtime check of them, a host callback. (Not for implicit solvers:
-        # diffrax reads their root finder, which the wrapper hides.)
-        self.sampled = (solver_saves and ts is not None
-                        and not isinstance(solver, dfx.AbstractImplicitSolver))
+        # carries diffrax's runtime check of them, a host callback.
+        self.sampled = solver_saves and ts is not None
         if self.sampled:
             self.ts_padded = Samples.pad(ts)
         if (self.sampled and isinstance(adjoint, dfx.ForwardMode)
@@ -284,7 +283,17 @@ class _Run:
             subs.insert(0, dfx.SubSaveAt(ts=times(jnp.clip(ts, t_s, t_stop))))
         if self.record:
             writers["table"] = Table(c["table"], unit)
+        # The step (or first step) held by the controller: `diffeqsolve` checks the sign of a
+        # traced `dt0` with a host callback (see `_solvers._fixed`).
+        if dt0 is not None and type(controller) is dfx.ConstantStepSize:
+            controller, dt0 = FixedStep(dt0), None
+        elif dt0 is not None and isinstance(controller, ScaledPIDController):
+            controller = eqx.tree_at(lambda c: c.first_step, controller, dt0,
+                                     is_leaf=lambda x: x is None)
+            dt0 = None
         if writers:
+            if isinstance(solver, dfx.AbstractImplicitSolver):  # (the wrapper hides it from
+                solver = with_root_finder_tolerances(solver, controller)  # diffeqsolve)
             controller = Writing(controller, writers, solver.interpolation_cls)
             solver = Reporting(solver)
         event = None if self.watch is None else self.watch.event(t_s, y_s, unit)
@@ -452,6 +461,9 @@ def integrate(scene, y0, t0, t1, ts, *, solver, controller, dt0, max_steps, adjo
     `SaveAt(ts)`."""
     if checks:
         y0 = scene.check(y0)
+        if dt0 is not None:  # (checked on the host where it is known: `_prepare_run`)
+            dt0 = eqx.error_if(dt0, ~(jnp.isfinite(dt0) & (dt0 > 0)),
+                               "dt0: must be a positive finite step (s)")
     if isinstance(controller, ScaledPIDController):
         time_scale = controller.bind(scene, t0, t1, y0).time_scale
     else:  # a controller of the user's: the time scale is still the events'

@@ -98,7 +98,10 @@ def _prepare_run(scene, y0, t0, t1, ts, solver, rtol, atol, stepsize_controller,
     if stepsize_controller is None:
         rtol, atol = check_tolerances(rtol, atol, dtype)
         stepsize_controller = ScaledPIDController(rtol=rtol, atol=atol)
-    dt0 = None if dt0 is None else jnp.asarray(dt0, dtype)
+    if dt0 is not None:
+        dt0 = as_float_array("dt0", dt0, (), dtype)
+        if is_concrete(dt0) and not (np.isfinite(float(dt0)) and float(dt0) > 0):
+            raise ParameterError(f"dt0={format_value(dt0)}: must be a positive finite step (s)")
     return y0, t0, t1, ts, solver, stepsize_controller, dt0
 
 

@@ -61,6 +61,9 @@ class ScaledPIDController(dfx.AbstractAdaptiveStepSizeController):
     time_scale: Any = None
     unit: Any = None  # a run on the unit interval (`on_unit_interval`): `jaxdyn._hybrid.Unit`
     jumps: Any = None  # sorted times (in `t`) at which the vector field jumps, or `None`
+    # The first step where the run gives one (`dt0`), held here: `diffeqsolve` checks the
+    # sign of a traced `dt0` with a host callback (see `_solvers._fixed`).
+    first_step: Any = None
 
     def bind(self, scene, t0, t1, y0) -> "ScaledPIDController":
         """This controller for a run of `scene` from `y0` over `[t0, t1]`: the natural scales
@@ -144,6 +147,7 @@ class ScaledPIDController(dfx.AbstractAdaptiveStepSizeController):
                                 scales)
 
         zero = jnp.zeros_like(T)
+        dt0 = self.first_step if dt0 is None else dt0
         tau0 = None if dt0 is None else dt0 / T
         tau1, state = self._inner().init(terms, zero, (t1 - t0) / T,
                                          jax.tree.map(_div, y0, scales), tau0, args,

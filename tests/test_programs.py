@@ -512,3 +512,86 @@ def test_when_lowered_calls_back_once_for_the_next_program_compiled(stored):
     assert len(seen) == 1
     assert seen[0]["sum"].shape == (3,) and isinstance(seen[0]["sum"], jax.ShapeDtypeStruct)
     assert seen[0]["n"].shape == () and seen[0]["n"].weak_type  # (its weak type kept)
+
+
+def _uncached(caplog, run):
+    """The programs that `run` compiled but JAX's persistent cache refused (a host callback)."""
+    with caplog.at_level("DEBUG", logger="jax"):
+        caplog.clear()
+        out = run()
+    return [r.getMessage() for r in caplog.records
+            if "Not writing persistent cache entry" in r.getMessage()], out
+
+
+def test_fixed_steps_first_steps_and_implicit_solvers_with_samples_are_cacheable(caplog):
+    """The programs of runs that give a step (`dt0`: fixed steps, or the first step of an
+    adaptive solver) or sample an implicit solver's run hold no host callback: diffrax checks
+    the sign of a traced `dt0` and the order of traced `SaveAt(ts)` with equinox's runtime
+    errors, so `dt0` is held by the controller (`jaxdyn._solvers._fixed`), checked on the host,
+    and the samples are written from the steps. Same steps and states as diffrax's own
+    `ConstantStepSize` with `dt0`, and as the samples diffrax saves (under the caller's `jit`)."""
+    import diffrax as dfx
+
+    inertia = np.array([1.0, 2.0, 3.0])
+    scene = jd.Scene(jd.RigidBody(inertia))
+    w0 = np.array([0.3, 1.0, 0.2])
+    y0 = scene.state(omega=w0)
+    ts = np.linspace(0.0, 2.0, 9)
+    h = float(np.random.default_rng().uniform(0.01, 0.02))  # (a new program each time)
+
+    def euler(t, w, args):
+        i = inertia
+        return jax.numpy.stack([(i[1] - i[2]) / i[0] * w[1] * w[2],
+                                (i[2] - i[0]) / i[1] * w[2] * w[0],
+                                (i[0] - i[1]) / i[2] * w[0] * w[1]])
+
+    runs = {
+        "fixed steps": lambda: jd.simulate(scene, y0, 2.0, solver=dfx.Heun(), dt0=h,
+                                           stepsize_controller=dfx.ConstantStepSize()),
+        "RK4 with a step": lambda: jd.simulate(scene, y0, 2.0, solver=jd.RK4(), dt0=h),
+        "splitting": lambda: jd.simulate(scene, y0, 2.0, solver=jd.RotationSplitting(4),
+                                         dt0=h, ts=ts),
+        "first step": lambda: jd.simulate(scene, y0, 2.0, dt0=h, rtol=1e-9, ts=ts),
+        "implicit, sampled": lambda: jd.simulate(scene, y0, 2.0, solver=dfx.Kvaerno5(),
+                                                 rtol=1e-9 + h * 1e-12, ts=ts),
+    }
+    for name, run in runs.items():
+        refused, _ = _uncached(caplog, run)
+        assert not refused, (name, refused)
+    # The control: a run that reports its progress holds a callback, and is seen to.
+    refused, _ = _uncached(caplog, lambda: jd.simulate(scene, y0, 2.0, progress=True))
+    assert refused
+
+    traj = runs["fixed steps"]()
+    ref = dfx.diffeqsolve(dfx.ODETerm(euler), dfx.Heun(), 0.0, 2.0, h, jax.numpy.asarray(w0),
+                          stepsize_controller=dfx.ConstantStepSize(), max_steps=10_000)
+    assert int(traj.stats["num_steps"]) == int(ref.stats["num_steps"]) == int(np.ceil(2 / h))
+    np.testing.assert_allclose(traj.y_final["omega"], ref.ys[-1], rtol=1e-14, atol=1e-15)
+    # The samples written from the implicit solver's steps against diffrax's `SaveAt(ts)`
+    # (the path of a run under the caller's `jit`, whose sample times are traced).
+    traj = runs["implicit, sampled"]()
+    traced = jax.jit(lambda ts: jd.simulate(scene, y0, 2.0, solver=dfx.Kvaerno5(),
+                                            rtol=1e-9 + h * 1e-12, ts=ts))(ts)
+    assert int(traj.stats["num_steps"]) == int(traced.stats["num_steps"])
+    np.testing.assert_allclose(traj.ys["omega"], traced.ys["omega"], rtol=1e-12, atol=1e-14)
+    # And against an independent route: the closed form, within the tolerance.
+    exact = np.asarray(jd.torque_free_omega(inertia, w0, ts))
+    np.testing.assert_allclose(traj.ys["omega"], exact, atol=1e-6)
+
+
+def test_a_step_is_checked_where_it_is_known_and_inside_the_program_where_it_is_traced():
+    scene = jd.Scene(jd.RigidBody([1.0, 2.0, 3.0]))
+    y0 = scene.state(omega=[0.3, 1.0, 0.2])
+    import diffrax as dfx
+
+    for bad in (-0.01, 0.0, float("nan"), float("inf")):
+        with pytest.raises(jd.ParameterError, match=r"dt0=.*: must be a positive finite step"):
+            jd.simulate(scene, y0, 1.0, solver=dfx.Euler(), dt0=bad)
+    with pytest.raises(jd.ParameterError, match=r"dt0='x': expected a number"):
+        jd.simulate(scene, y0, 1.0, solver=dfx.Euler(), dt0="x")
+    with pytest.raises(jd.ParameterError, match=r"dt0 has shape \(2,\)"):
+        jd.simulate(scene, y0, 1.0, solver=dfx.Euler(), dt0=[0.1, 0.2])
+    run = jax.jit(lambda h: jd.simulate(scene, y0, 1.0, solver=dfx.Euler(), dt0=h).y_final)
+    assert np.all(np.isfinite(run(0.01)["omega"]))
+    with pytest.raises(Exception, match="dt0: must be a positive finite step"):
+        jax.block_until_ready(run(-0.01))

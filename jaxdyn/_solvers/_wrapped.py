@@ -13,6 +13,11 @@ class AbstractDelegatingSolver(dfx.AbstractWrappedSolver):
         return self.solver.scan_kind
 
     @property
+    def root_finder(self):  # read by diffrax from an implicit solver it wraps (`isinstance`
+        return self.solver.root_finder  # sees through the wrapper); filled in beforehand by
+                                        # `_fixed.with_root_finder_tolerances`
+
+    @property
     def term_structure(self):
         return self.solver.term_structure
 
