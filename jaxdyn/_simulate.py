@@ -150,7 +150,8 @@ def simulate(
     - `stepsize_controller`: any diffrax controller (overrides `rtol`, `atol`); use
       `diffrax.ConstantStepSize()` with `dt0` for fixed steps (the default for solvers without
       error estimates, such as [`jaxdyn.RotationSplitting`][]).
-    - `dt0`: initial step (chosen automatically by default for adaptive controllers).
+    - `dt0`: the step of fixed steps, or the first step of adaptive ones (chosen
+      automatically by default); positive and finite, in the units of `t`.
     - `max_steps`: an error is raised, never a silently truncated result, if more are needed.
     - `adjoint`: any diffrax adjoint (default `diffrax.RecursiveCheckpointAdjoint()`).
     - `events`: whether the scene's terminating events end the run (for a hybrid body, such
