@@ -163,9 +163,10 @@ def _end(status) -> NoReturn:
     without the interpreter's teardown: that frees every module and JAX's compiled programs
     one by one, 0.3-0.4 s of a 1-3 s command on 2 cores (`jaxdyn run`, cold and warm; the
     exit handlers themselves take about 10 ms). What a normal exit does that matters is done
-    first, in its order: the threads that are not daemons (a program still compiling for the
-    persistent cache) are joined, the exit handlers run (`atexit`: JAX's, logging's,
-    `weakref.finalize`'s, a temporary directory's clean-up), and the output is flushed."""
+    first, in its order: `threading._shutdown` (its hooks, such as waking an idle thread
+    pool's workers to end, then joining the threads that are not daemons: a program still
+    compiling for the persistent cache), the exit handlers (`atexit`: JAX's, logging's,
+    `weakref.finalize`'s, a temporary directory's clean-up), and flushing the output."""
     if status is None:
         code = 0
     elif isinstance(status, int):
@@ -173,15 +174,21 @@ def _end(status) -> NoReturn:
     else:  # a message, as SystemExit prints it
         sys.stderr.write(f"{status}\n")
         code = 1
-    current = threading.current_thread()
-    for thread in threading.enumerate():
-        if thread is not current and not thread.daemon:
-            thread.join()
+    shutdown = getattr(threading, "_shutdown", None)
+    if shutdown is not None:  # CPython's own: its exit hooks (an idle thread pool's workers
+        shutdown()            # are woken to end), then every thread that is not a daemon
+    else:
+        current = threading.current_thread()
+        for thread in threading.enumerate():
+            if thread is not current and not thread.daemon:
+                thread.join()
     run_exit_handlers = getattr(atexit, "_run_exitfuncs", None)
     if run_exit_handlers is None:  # (not CPython: the interpreter's own exit)
         raise SystemExit(code)
     run_exit_handlers()
     for stream in (sys.stdout, sys.stderr):
+        if stream is None:  # (a closed descriptor: nothing to flush)
+            continue
         try:
             stream.flush()
         except (OSError, ValueError):  # a reader that went away, a closed stream: quietly,

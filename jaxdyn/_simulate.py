@@ -89,7 +89,12 @@ def _prepare_run(scene, y0, t0, t1, ts, solver, rtol, atol, stepsize_controller,
     if not isinstance(max_steps, int) or max_steps <= 0:
         raise ParameterError(f"max_steps={max_steps!r}: must be a positive integer")
     solver = dfx.Tsit5() if solver is None else solver
-    if stepsize_controller is None and not isinstance(solver, dfx.AbstractAdaptiveSolver):
+    if (isinstance(stepsize_controller, dfx.AbstractAdaptiveStepSizeController)
+            and not _estimates_error(solver)):
+        raise ParameterError(
+            f"solver {type(solver).__name__} has no error estimate: an adaptive step-size "
+            "controller would grow its steps unchecked; use diffrax.ConstantStepSize() with dt0")
+    if stepsize_controller is None and not _estimates_error(solver):
         if dt0 is None:
             raise ParameterError(
                 f"solver {type(solver).__name__} takes fixed steps: give dt0 (the step size)"
@@ -192,7 +197,7 @@ def simulate(
     # (so the program holds no host callback and JAX's persistent cache can keep it). Under a
     # trace of the caller's (jit, grad, vmap) the host cannot see the values: the checks ride
     # in the program (equinox's runtime errors).
-    traced = not is_concrete(scene, y0, t0, t1, ts) or _staged()
+    traced = not is_concrete(scene, y0, t0, t1, ts, dt0, rtol, atol) or _staged()
     adjoint = dfx.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
     traj = _simulate(
         scene, y0, t0, t1, ts,
@@ -356,6 +361,17 @@ def _build(treedef, max_steps, events, dense):
 
 
 _SUCCESS = (Outcome.completed, Outcome.event)
+
+
+def _estimates_error(solver) -> bool:
+    """Whether `solver` estimates its local error (so that an adaptive controller can choose
+    its steps): an adaptive solver, and for a Runge-Kutta tableau, error weights that are not
+    all zero (`jaxdyn.RK4` is an explicit Runge-Kutta method to diffrax, but without an
+    estimate: an adaptive controller saw zero error and grew the step tenfold at each step)."""
+    if not isinstance(solver, dfx.AbstractAdaptiveSolver):
+        return False
+    b_error = getattr(getattr(solver, "tableau", None), "b_error", None)
+    return b_error is None or bool(np.any(np.asarray(b_error) != 0))
 
 
 def _check_span(t0: float, t1: float, dtype) -> None:

@@ -134,6 +134,9 @@ def test_the_command_ends_as_a_normal_exit_would(tmp_path, capsys):
         "    time.sleep(0.3)\n"
         f"    open({str(late)!r}, 'w').write('done')\n"
         "threading.Thread(target=work).start()\n"
+        "import concurrent.futures\n"  # an idle pool, never shut down: woken at the exit
+        "pool = concurrent.futures.ThreadPoolExecutor(1)\n"
+        "pool.submit(lambda: None).result()\n"
         "sys.argv = ['jaxdyn', *sys.argv[1:]]\n"
         "console()\n")
     listing = run_cli(capsys, "scenes")[1]
@@ -155,6 +158,10 @@ def test_the_command_ends_as_a_normal_exit_would(tmp_path, capsys):
                            "exit ${PIPESTATUS[0]}"], capture_output=True, text=True, timeout=120,
                           env=env)
     assert (proc.returncode, proc.stderr) == (1, "")
+    # With the output closed (`jaxdyn scenes >&-`): no traceback for want of a stream.
+    proc = subprocess.run(["bash", "-c", f"{sys.executable} -m jaxdyn scenes >&-"],
+                          capture_output=True, text=True, timeout=120, env=env)
+    assert "Traceback" not in proc.stderr, proc.stderr[-500:]
 
 
 def test_step_budget_exhaustion_is_an_error_not_a_truncation(capsys):

@@ -591,7 +591,32 @@ def test_a_step_is_checked_where_it_is_known_and_inside_the_program_where_it_is_
         jd.simulate(scene, y0, 1.0, solver=dfx.Euler(), dt0="x")
     with pytest.raises(jd.ParameterError, match=r"dt0 has shape \(2,\)"):
         jd.simulate(scene, y0, 1.0, solver=dfx.Euler(), dt0=[0.1, 0.2])
+    # A step traced by the caller's `grad` alone (the rest concrete) is checked in the program.
+    with pytest.raises(Exception, match="dt0: must be a positive finite step"):
+        jax.grad(lambda h: jd.simulate(scene, y0, 1.0, solver=dfx.Euler(), dt0=h,
+                                       max_steps=500).y_final["omega"][0])(-0.01)
     run = jax.jit(lambda h: jd.simulate(scene, y0, 1.0, solver=dfx.Euler(), dt0=h).y_final)
     assert np.all(np.isfinite(run(0.01)["omega"]))
     with pytest.raises(Exception, match="dt0: must be a positive finite step"):
         jax.block_until_ready(run(-0.01))
+
+
+def test_a_solver_without_an_error_estimate_takes_fixed_steps():
+    """`jaxdyn.RK4` is an explicit Runge-Kutta method to diffrax but estimates no error: given
+    `dt0` alone it takes fixed steps (an adaptive controller saw zero error and grew the step
+    tenfold at each step: 5 steps over 20 s, an error of 1e34), and an adaptive controller is
+    refused."""
+    import diffrax as dfx
+
+    inertia, w0 = np.array([1.0, 2.0, 3.0]), np.array([0.3, 1.0, 0.2])
+    scene = jd.Scene(jd.RigidBody(inertia))
+    y0 = scene.state(omega=w0)
+    traj = jd.simulate(scene, y0, 20.0, solver=jd.RK4(), dt0=0.01)
+    assert int(traj.stats["num_steps"]) == 2000
+    exact = np.asarray(jd.torque_free_omega(inertia, w0, 20.0))
+    assert np.max(np.abs(np.asarray(traj.y_final["omega"]) - exact)) < 1e-8
+    with pytest.raises(jd.ParameterError, match="RK4 has no error estimate"):
+        jd.simulate(scene, y0, 20.0, solver=jd.RK4(), dt0=0.01,
+                    stepsize_controller=dfx.PIDController(rtol=1e-6, atol=1e-9))
+    with pytest.raises(jd.ParameterError, match="RK4 takes fixed steps: give dt0"):
+        jd.simulate(scene, y0, 20.0, solver=jd.RK4())
