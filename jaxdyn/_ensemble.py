@@ -664,8 +664,13 @@ def _resolve(scene, y0, t1, *, n, key, vary, parameters, t0, ts, observe, keep, 
     y_single, y_batch, p_single, p_batch, n = _split_inputs(scene, y0, parameters, targets, n)
     # Check the run's settings on one unbatched trajectory, as simulate would.
     example = {k: jnp.asarray(v[0] if k in y_batch else v) for k, v in y0.items()}
-    ex_y0, t0, t1, ts, solver, _, dt0 = _prepare_run(
+    ex_y0, t0, t1, ts, solver, controller, dt0 = _prepare_run(
         scene, example, t0, t1, ts, solver, rtol, atol, None, dt0, max_steps)
+    if not isinstance(controller, ScaledPIDController):  # (every mode steps adaptively)
+        raise ParameterError(
+            f"solver {type(solver).__name__} takes fixed steps: an ensemble's trajectories "
+            "take adaptive steps (rtol, atol); use an explicit Runge-Kutta solver with an "
+            "error estimate (diffrax.Tsit5, Dopri5, Dopri8), or jd.simulate under jax.vmap")
     rtol, atol = (float(x) for x in check_tolerances(rtol, atol, t0.dtype))
     if mode != "vmap":
         switching = [e.kind for e in scene.effects if e.max_switches]

@@ -196,3 +196,15 @@ def test_bad_values_exit_2_with_one_line(capsys, argv, expected):
     assert len(err.strip().splitlines()) == 1
 
 
+
+
+@pytest.mark.parametrize("mode", ["adaptive", "vmap"])
+def test_an_ensemble_refuses_fixed_steps_by_name(mode):
+    # Every ensemble mode steps adaptively: a fixed-step solver (given dt0) is refused naming
+    # it (in vmap mode it crashed with a raw pytree-structure ValueError from the controller).
+    y0 = SCENE.state(omega=[0.3, 1.0, 0.2])
+    batch = {k: jnp.stack([v, v]) for k, v in y0.items()}
+    for solver in (dfx.Euler(), jd.RK4()):
+        with pytest.raises(jd.ParameterError, match=f"solver {type(solver).__name__} takes "
+                           "fixed steps: an ensemble's trajectories take adaptive steps"):
+            jd.ensemble(SCENE, batch, 1.0, solver=solver, dt0=0.01, mode=mode)
