@@ -175,16 +175,10 @@ def _end(status) -> NoReturn:
         sys.stderr.write(f"{status}\n")
         code = 1
     shutdown = getattr(threading, "_shutdown", None)
-    if shutdown is not None:  # CPython's own: its exit hooks (an idle thread pool's workers
-        shutdown()            # are woken to end), then every thread that is not a daemon
-    else:
-        current = threading.current_thread()
-        for thread in threading.enumerate():
-            if thread is not current and not thread.daemon:
-                thread.join()
     run_exit_handlers = getattr(atexit, "_run_exitfuncs", None)
-    if run_exit_handlers is None:  # (not CPython: the interpreter's own exit)
+    if shutdown is None or run_exit_handlers is None:  # (not CPython: its own exit)
         raise SystemExit(code)
+    shutdown()  # its hooks (an idle thread pool's workers woken to end), then the threads
     run_exit_handlers()
     for stream in (sys.stdout, sys.stderr):
         if stream is None:  # (a closed descriptor: nothing to flush)

@@ -14,6 +14,8 @@ holds no host callback (JAX's persistent compilation cache refuses programs that
 """
 
 import diffrax as dfx
+import equinox as eqx
+from diffrax._root_finder import use_stepsize_tol  # (diffrax's sentinel, not exported)
 from jaxtyping import Array
 
 
@@ -36,8 +38,6 @@ class FixedStep(dfx.AbstractStepSizeController):
 
 
 def _unset(root_finder) -> tuple[str, ...]:
-    from diffrax._root_finder import use_stepsize_tol  # (diffrax's sentinel, not exported)
-
     return tuple(a for a in ("rtol", "atol", "norm")
                  if getattr(root_finder, a, None) is use_stepsize_tol)
 
@@ -45,8 +45,6 @@ def _unset(root_finder) -> tuple[str, ...]:
 def with_root_finder_tolerances(solver, controller):
     """`solver` (implicit) with the tolerances and norm its root finder leaves to the step-size
     controller taken from `controller`, as `diffrax.diffeqsolve` fills them in."""
-    import equinox as eqx
-
     unset = _unset(solver.root_finder)
     if not unset:
         return solver
