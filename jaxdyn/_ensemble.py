@@ -20,7 +20,7 @@ from . import _batch_solve
 from ._batch_solve import STATUS, STATUS_HELP, Switching, batch_solve, tableau
 from ._chunkstore import ChunkStore, digest
 from ._distributions import AbstractDistribution, name_seed, split_name
-from ._hybrid import Watch
+from ._hybrid import FORWARD, Watch
 from ._outcome import Outcome, to_diffrax
 from ._scene import Scene
 from ._simulate import _prepare_run, _simulate, check_tolerances
@@ -375,7 +375,7 @@ def _run_vmap(shared: _Shared, config: _ChunkConfig, params, y0, flags):
     def run(p, y):
         return _simulate(_scene_of(shared.scene, p), y, shared.t0, shared.t1, shared.ts,
                          solver=config.solver, controller=controller, dt0=shared.dt0,
-                         max_steps=config.max_steps, adjoint=dfx.RecursiveCheckpointAdjoint(),
+                         max_steps=config.max_steps, adjoint=FORWARD,
                          events=config.events, meter=dfx.NoProgressMeter(), dense=False,
                          checks=False, solver_saves=True)  # not diffrax's `SaveAt(ts)`: its
         # check of traced times is a host callback, which keeps a program out of the cache

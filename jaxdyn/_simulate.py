@@ -14,7 +14,7 @@ from jaxtyping import ArrayLike
 
 from ._body import AbstractBody
 from ._custom_types import State
-from ._hybrid import finite, integrate
+from ._hybrid import FORWARD, finite, integrate
 from ._outcome import Outcome
 from ._programs import _signature, thread_setting, when_lowered
 from ._scene import Scene
@@ -158,7 +158,10 @@ def simulate(
     - `dt0`: the step of fixed steps, or the first step of adaptive ones (chosen
       automatically by default); positive and finite, in the units of `t`.
     - `max_steps`: an error is raised, never a silently truncated result, if more are needed.
-    - `adjoint`: any diffrax adjoint (default `diffrax.RecursiveCheckpointAdjoint()`).
+    - `adjoint`: any diffrax adjoint (default `diffrax.RecursiveCheckpointAdjoint()` where
+      the call is traced by `jax.grad` or another transformation of the caller's; called with
+      concrete values, whose results nothing can differentiate, diffrax's plain loop,
+      `diffrax.ForwardMode()`: the same steps, traced in about two thirds of the time).
     - `events`: whether the scene's terminating events end the run (for a hybrid body, such
       as [`jaxdyn.RoughFloorRod`][], whether its modes switch; see `jaxdyn._hybrid`).
     - `progress`: `True` for a tqdm progress bar, or any diffrax progress meter.
@@ -198,7 +201,10 @@ def simulate(
     # trace of the caller's (jit, grad, vmap) the host cannot see the values: the checks ride
     # in the program (equinox's runtime errors).
     traced = not is_concrete(scene, y0, t0, t1, ts, dt0, rtol, atol) or _staged()
-    adjoint = dfx.RecursiveCheckpointAdjoint() if adjoint is None else adjoint
+    if adjoint is None:
+        # Concrete inputs give concrete outputs, which nothing can differentiate: the plain
+        # loop (`FORWARD`). Under a trace of the caller's, reverse mode must work.
+        adjoint = dfx.RecursiveCheckpointAdjoint() if traced else FORWARD
     traj = _simulate(
         scene, y0, t0, t1, ts,
         solver=solver,
@@ -349,7 +355,7 @@ def _build(treedef, max_steps, events, dense):
         traj = _simulate_impl(
             scene, y0, t0, t1, ts, solver=dfx.Tsit5(),
             controller=ScaledPIDController(rtol=rtol, atol=atol), dt0=None,
-            max_steps=max_steps, adjoint=dfx.RecursiveCheckpointAdjoint(), events=events,
+            max_steps=max_steps, adjoint=FORWARD, events=events,
             meter=dfx.NoProgressMeter(), dense=dense, checks=False, solver_saves=True)
         # A non-finite initial state fails the run as invalid input; the host then names
         # the field (cheaper than reading each state array back before the run).
