@@ -1,9 +1,11 @@
 """One enumeration of outcomes (`jd.Outcome`): every outcome, produced on purpose, is labelled
 the same by `simulate` and by every ensemble mode (issue 18)."""
 
+import diffrax
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 import pytest
 
 import jaxdyn as jd
@@ -137,3 +139,33 @@ def test_hybrid_outcomes():
 def test_outcome_names_and_messages_are_one_table():
     assert [o.name for o in Outcome] == list(jd.Ensemble.status_names)
     assert set(MESSAGES) == set(Outcome)
+
+
+@pytest.mark.parametrize("kw", [{"ts": np.linspace(0.0, 2.0, 41)}, {"dense": True},
+                                {"solver": diffrax.Dopri5(), "ts": np.linspace(0.0, 2.0, 9)}])
+def test_a_concrete_run_takes_the_steps_of_the_differentiable_loop(kw):
+    """A call with concrete values loops as diffrax's `ForwardMode` (nothing can differentiate
+    its results); under the caller's trace it loops as `RecursiveCheckpointAdjoint`, which
+    reverse mode needs. The same steps and values to the bit, on a scene with switches and
+    its event (the rough-floor rod) and on the rigid body."""
+    rough, free = jd.Scene(jd.RoughFloorRod(mu_s=0.3, mu_k=0.2)), jd.Scene(jd.RigidBody(INERTIA))
+    for scene, y0 in ((rough, rough.state(theta=0.4)), (free, free.state(omega=OMEGA))):
+        direct = jd.simulate(scene, y0, 2.0, **kw)
+        staged = jax.jit(lambda scene=scene, y0=y0: jd.simulate(scene, y0, 2.0, **kw))()
+        assert int(direct.stats["num_steps"]) == int(staged.stats["num_steps"]) > 3
+        times = np.linspace(0.0, float(direct.t_final), 17)
+        pairs = [(direct.ys, staged.ys), (direct.y_final, staged.y_final)]
+        if kw.get("dense"):
+            pairs.append((direct.evaluate(times), staged.evaluate(times)))
+        for i, (a, b) in enumerate(pairs):
+            for k in a:
+                if i == 0 and "solver" in kw:  # (samples: written by jaxdyn from the steps
+                    np.testing.assert_allclose(  # outside, by diffrax's SaveAt inside: the
+                        a[k], b[k], rtol=1e-14, atol=1e-15)  # last bit may differ)
+                else:
+                    assert np.array_equal(np.asarray(a[k]), np.asarray(b[k])), k
+    # Differentiable where traced: the reverse-mode derivative of the last rate.
+    scene = jd.Scene(jd.RigidBody(INERTIA))
+    grad = jax.grad(lambda w: jd.simulate(scene, scene.state(omega=w), 2.0, **kw)
+                    .y_final["omega"][0])(jnp.asarray(OMEGA))
+    assert np.all(np.isfinite(np.asarray(grad)))
