@@ -257,7 +257,10 @@ class _Run:
             c["ts_taken"] = jnp.zeros(self.ts.shape, bool)
             c["ys"] = jax.tree.map(lambda a: jnp.zeros(self.ts.shape + a.shape, a.dtype), y)
         if self.record:
-            c["table"] = empty_table(self.solver, self.term, self.t0, self.t1, y, self.scene,
+            solver = self.solver
+            if isinstance(solver, dfx.AbstractImplicitSolver):  # (its step, for the table's
+                solver = with_root_finder_tolerances(solver, self.controller)  # shapes)
+            c["table"] = empty_table(solver, self.term, self.t0, self.t1, y, self.scene,
                                      self.max_steps)
         return c
 

@@ -135,7 +135,32 @@ class Scene(eqx.Module):
             if v.shape != shape:
                 raise ParameterError(f"y0[{k!r}] has shape {v.shape}: expected {shape}")
             out[k] = v
+        self._check_precision(out)
         return out
+
+    def _check_precision(self, y: State) -> None:
+        """A run integrates in one floating precision: the state's variables share it, and
+        no parameter of the scene is wider (its derivative would be, which the solver cannot
+        store in the state)."""
+        floats = {k: v.dtype for k, v in y.items() if jnp.issubdtype(v.dtype, jnp.floating)}
+        if len(set(floats.values())) > 1:
+            listed = ", ".join(f"{k} {jnp.dtype(d).name}" for k, d in floats.items())
+            raise ParameterError(f"y0 mixes precisions ({listed}): a run integrates in one; "
+                                 "give every variable the same floating dtype")
+        if not floats:
+            return
+        name, dtype = next(iter(floats.items()))
+        for path, leaf in jax.tree_util.tree_flatten_with_path(self)[0]:
+            d = getattr(leaf, "dtype", None)
+            if (d is not None and jnp.issubdtype(d, jnp.floating)
+                    and not getattr(leaf, "weak_type", False)
+                    and jnp.finfo(d).bits > jnp.finfo(dtype).bits):
+                where = jax.tree_util.keystr(path).lstrip(".")
+                raise ParameterError(
+                    f"y0[{name!r}] is {jnp.dtype(dtype).name} but the scene's {where} is "
+                    f"{jnp.dtype(d).name}: a run integrates in one precision; give the state "
+                    f"in {jnp.dtype(d).name} (scene.state(...) does) or build the scene from "
+                    f"{jnp.dtype(dtype).name} values")
 
     def _own(self, y: State) -> tuple:
         return tuple((e, _own_state(y, label)) for label, e in zip(self.labels, self.effects))
