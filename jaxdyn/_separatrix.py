@@ -44,7 +44,6 @@ from jaxtyping import Array, ArrayLike, Bool, Complex, Float, Int
 from ._effects import Rotor
 from ._rigid_body import RigidBody
 from ._scene import Scene
-from ._simulate import simulate
 from ._stored_jit import stored_filter_jit
 from ._validation import ParameterError, as_float_array, device_array
 
@@ -501,6 +500,8 @@ def trace_separatrices(
 
     A [`jaxdyn.Separatrices`][], with no branches when there is no saddle.
     """
+    from ._simulate import simulate  # (the integration stack: only where a branch is traced)
+
     _check_scene(scene)
     if not isinstance(equilibria, Equilibria):
         equilibria = find_equilibria(scene, equilibria)

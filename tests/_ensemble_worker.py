@@ -4,7 +4,7 @@ Used by tests/test_ensemble.py for what needs a process of its own: several simu
 devices (`XLA_FLAGS=--xla_force_host_platform_device_count=N`, set before JAX starts) and
 several processes joined by `jax.distributed`.
 
-    python tests/_ensemble_worker.py MODE [--devices K] [--out DIR]
+    python tests/_ensemble_worker.py MODE [--devices K] [--chunk C] [--out DIR]
                                           [--process I --processes P --port PORT]
 """
 
@@ -22,6 +22,7 @@ def main():
     parser.add_argument("--process", type=int, default=None)
     parser.add_argument("--processes", type=int, default=None)
     parser.add_argument("--port", type=int, default=None)
+    parser.add_argument("--chunk", type=int, default=32)
     args = parser.parse_args()
     if args.process is not None:
         jax.distributed.initialize(coordinator_address=f"127.0.0.1:{args.port}",
@@ -34,8 +35,14 @@ def main():
     res = jd.ensemble(scene, scene.state(omega=[0.1, 1.0, 0.1]), 5.0, n=100, key=3,
                       vary={"omega": jd.Normal([0.1, 1.0, 0.1], 0.05),
                             "inertia[0]": jd.Uniform(0.9, 1.1)},
-                      mode=args.mode, chunk_size=32, devices=devices, out=args.out)
+                      mode=args.mode, chunk_size=args.chunk, devices=devices, out=args.out)
+    from jaxdyn import _ensemble
+
+    # How each chunk program was compiled: one per device, or one over every device.
+    programs = sorted("per_device" if where == "per_device" else "one"
+                      for _, where in _ensemble._COMPILED.values())
     print(json.dumps({"devices": res.devices, "process_count": jax.process_count(),
+                      "programs": programs,
                       "local_devices": len(jax.local_devices()),
                       "omega": res.values["omega"].tolist(),
                       "status": res.status.tolist(), "steps": res.steps.tolist()}))

@@ -352,12 +352,19 @@ def _worker(*args, env=None):
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
-@pytest.mark.parametrize("mode", ["adaptive", "lockstep"])
-def test_sharded_across_devices_equals_one_device(mode):
+@pytest.mark.parametrize("mode, chunk", [("adaptive", "32"), ("adaptive", "128"),
+                                         ("lockstep", "32")])
+def test_sharded_across_devices_equals_one_device(mode, chunk):
+    """100 trajectories on 4 devices against one device. Adaptive steps in chunks of 32 (four
+    chunks): one program per device, each device going on to its next chunk; in one chunk of
+    100: one program over the four devices (compiled once). Lock-step: one program over the
+    devices, whose step sizes are reduced across them."""
     env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=4"}
-    sharded = _worker(mode, env=env)
-    single = _worker(mode, "--devices", "1", env=env)
+    sharded = _worker(mode, "--chunk", chunk, env=env)
+    single = _worker(mode, "--devices", "1", "--chunk", chunk, env=env)
     assert sharded["local_devices"] == 4 and sharded["devices"] == 4 and single["devices"] == 1
+    assert sharded["programs"] == (["per_device"] if chunk == "32" and mode == "adaptive"
+                                   else ["one"])
     assert sharded["status"] == single["status"]
     assert sharded["steps"] == single["steps"]
     np.testing.assert_allclose(sharded["omega"], single["omega"], rtol=1e-14, atol=1e-15)
