@@ -16,7 +16,7 @@ from ._custom_types import State
 from ._outcome import NAMES, Outcome, SimulationError
 from ._programs import StoredProgram
 from ._scene import Scene
-from ._validation import ParameterError, is_concrete
+from ._validation import ParameterError
 
 
 class MergedInterpolation(eqx.Module):
@@ -78,27 +78,15 @@ class Trajectory(eqx.Module):
         """States at times `t` within the run, from its start to `t_final` (the event time
         where an event ended it), from the solver's dense output (`simulate(..., dense=True)`):
         for one time, a state; for a 1-D array of times, the states stacked along a first
-        axis. A time outside the run is refused (`ParameterError`); traced (inside the
-        caller's `jit`), it gives nan, never an extrapolation of the last step."""
+        axis. Times outside the run give nan (as saved times after an event are `inf`)."""
         if self.interpolation is None:
             raise ParameterError("evaluate needs the dense output: simulate(..., dense=True)")
         t = jnp.asarray(t, self.t_final.dtype)
         if t.ndim > 1:
             raise ParameterError(f"t has shape {t.shape}: expected a time or a 1-D array of "
                                  "times")
-        t0 = self.interpolation.t0
-        if is_concrete(t, t0, self.t_final):
-            a, lo, hi = np.asarray(t), float(t0), float(self.t_final)
-            bad = a[~((a >= lo) & (a <= hi))]  # (nan included)
-            if bad.size:
-                raise ParameterError(
-                    f"t={float(bad.flat[0]):.17g}: outside the run, whose dense output spans "
-                    f"[{lo:.17g}, {hi:.17g}] ({bad.size} of {a.size} times)")
-        y = (jax.vmap(self.interpolation.evaluate) if t.ndim else self.interpolation.evaluate)(t)
-        outside = ~((t >= t0) & (t <= self.t_final))
-        return jax.tree.map(
-            lambda v: jnp.where(outside.reshape(outside.shape + (1,) * (v.ndim - t.ndim)),
-                                jnp.nan, v), y)
+        return (jax.vmap(self.interpolation.evaluate) if t.ndim else
+                self.interpolation.evaluate)(t)
 
     def resample(self, num: int) -> "Trajectory":
         """The same run saved at `num` evenly spaced times from its start to its end (the event

@@ -98,11 +98,6 @@ API = [
     ("ensemble y0 narrower than the scene",
      lambda: jd.ensemble(SCENE, {"omega": np.array([0.1, 1.0, 0.1], np.float32)}, 1.0, n=2),
      "y0['omega'] is float32 but the scene's body.inertia is float64"),
-    ("evaluate after the run", lambda: jd.simulate(SCENE, Y0, 1.0, dense=True).evaluate(1.5),
-     "t=1.5: outside the run, whose dense output spans [0, 1]"),
-    ("evaluate before the run",
-     lambda: jd.simulate(SCENE, Y0, 1.0, t0=0.5, dense=True).evaluate([0.6, 0.25, 0.7]),
-     "t=0.25: outside the run, whose dense output spans [0.5, 1] (1 of 3 times)"),
     ("evaluate shape", lambda: jd.simulate(SCENE, Y0, 1.0, dense=True).evaluate([[0.5]]),
      "t has shape (1, 1): expected a time or a 1-D array of times"),
     # closed forms and helpers

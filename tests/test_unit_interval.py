@@ -44,6 +44,9 @@ def test_dense_output_is_in_the_callers_time():
     np.testing.assert_allclose(np.asarray(dense.evaluate(inside)["omega"]),
                                np.asarray(saved.ys["omega"]), rtol=1e-12)
     assert np.all(np.isnan(np.asarray(dense.evaluate(jnp.array([4.9, 25.1]))["omega"])))
+    one = dense.evaluate(13.5)["omega"]  # one time: one state
+    assert one.shape == (3,) and np.array_equal(one, dense.evaluate(inside)["omega"][2])
+    assert np.all(np.isnan(np.asarray(dense.evaluate(25.1)["omega"])))
 
 
 def test_the_final_state_moves_with_the_end_time_as_the_vector_field_says():
