@@ -135,32 +135,48 @@ class Scene(eqx.Module):
             if v.shape != shape:
                 raise ParameterError(f"y0[{k!r}] has shape {v.shape}: expected {shape}")
             out[k] = v
-        self._check_precision(out)
         return out
 
-    def _check_precision(self, y: State) -> None:
-        """A run integrates in one floating precision: the state's variables share it, and
-        no parameter of the scene is wider (its derivative would be, which the solver cannot
-        store in the state)."""
-        floats = {k: v.dtype for k, v in y.items() if jnp.issubdtype(v.dtype, jnp.floating)}
-        if len(set(floats.values())) > 1:
-            listed = ", ".join(f"{k} {jnp.dtype(d).name}" for k, d in floats.items())
-            raise ParameterError(f"y0 mixes precisions ({listed}): a run integrates in one; "
-                                 "give every variable the same floating dtype")
-        if not floats:
-            return
-        name, dtype = next(iter(floats.items()))
-        for path, leaf in jax.tree_util.tree_flatten_with_path(self)[0]:
-            d = getattr(leaf, "dtype", None)
-            if (d is not None and jnp.issubdtype(d, jnp.floating)
-                    and not getattr(leaf, "weak_type", False)
-                    and jnp.finfo(d).bits > jnp.finfo(dtype).bits):
-                where = jax.tree_util.keystr(path).lstrip(".")
-                raise ParameterError(
-                    f"y0[{name!r}] is {jnp.dtype(dtype).name} but the scene's {where} is "
-                    f"{jnp.dtype(d).name}: a run integrates in one precision; give the state "
-                    f"in {jnp.dtype(d).name} (scene.state(...) does) or build the scene from "
-                    f"{jnp.dtype(dtype).name} values")
+    def check_precision(self, y: State) -> None:
+        """A run integrates each state variable in its own dtype: refuse a state whose
+        derivative under this scene comes out in another (a float32 state with float64
+        parameters), naming the variable, both dtypes and the scene's wider values. Checked by
+        shapes and dtypes alone (`jax.eval_shape`), once per structure."""
+        leaves, treedef = jax.tree_util.tree_flatten(self)
+        kinds = {jnp.result_type(v) for v in y.values()}
+        if len(kinds) == 1 and jnp.issubdtype(next(iter(kinds)), jnp.floating):
+            bits = jnp.finfo(next(iter(kinds))).bits
+            if all(not (hasattr(x, "dtype") and jnp.issubdtype(x.dtype, jnp.floating))
+                   or jnp.finfo(x.dtype).bits <= bits for x in leaves):
+                return  # nothing in the scene is wider than the state: nothing to widen it
+        # (Cached for scenes of arrays and numbers: a Python function, which may hold a
+        # caller's tracers, is not kept.)
+        key = None if any(callable(x) for x in leaves) else (
+            treedef, tuple(_aval(x) for x in leaves), tuple((k, _aval(v)) for k, v in y.items()))
+        found = None if key is None else _PRECISION.get(key)
+        if found is None:
+            spec = {k: jax.ShapeDtypeStruct(jnp.shape(v), jnp.result_type(v)) for k, v in y.items()}
+            floats = [k for k, v in spec.items() if jnp.issubdtype(v.dtype, jnp.floating)]
+            with jax.numpy_dtype_promotion("standard"):  # (the dtypes it would promote to)
+                t = jax.ShapeDtypeStruct((), jnp.result_type(*(spec[k].dtype for k in floats))
+                                         if floats else jnp.result_type(float))
+                dy = jax.eval_shape(lambda t, y: self.vector_field(t, y), t, spec)
+            found = tuple(
+                (k, spec[k].dtype, dy[k].dtype) for k in floats
+                if k in dy and dy[k].dtype != spec[k].dtype)
+            if key is not None:
+                _PRECISION[key] = found
+        if found:
+            name, have, get = found[0]
+            wider = [jax.tree_util.keystr(path).lstrip(".")
+                     for path, x in jax.tree_util.tree_flatten_with_path(self)[0]
+                     if hasattr(x, "dtype") and x.dtype == get
+                     and not getattr(x, "weak_type", False)]
+            held = f" (the scene holds {get.name} values: {', '.join(wider[:3])})" if wider else ""
+            raise ParameterError(
+                f"y0[{name!r}] is {have.name} but its derivative under this scene is "
+                f"{get.name}{held}: give y0[{name!r}] in {get.name}, or build the scene from "
+                f"{have.name} values")
 
     def _own(self, y: State) -> tuple:
         return tuple((e, _own_state(y, label)) for label, e in zip(self.labels, self.effects))
@@ -398,6 +414,13 @@ class Scene(eqx.Module):
                 scale = self.body.invariant_scale(name, jnp.linalg.norm(v[0]))
             out[f"{name}_rel_error"] = jnp.max(jnp.where(valid, drift, 0.0)) / scale
         return out
+
+
+_PRECISION: dict = {}  # Scene.check_precision's findings, per structure
+
+
+def _aval(x):
+    return (jnp.shape(x), jnp.result_type(x), bool(getattr(x, "weak_type", False)))
 
 
 def _own_state(y: State, label: str) -> State:

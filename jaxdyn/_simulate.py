@@ -76,6 +76,7 @@ def _prepare_run(scene, y0, t0, t1, ts, solver, rtol, atol, stepsize_controller,
     dtype = jnp.result_type(*jax.tree_util.tree_leaves(y0))
     if not jnp.issubdtype(dtype, jnp.floating):
         raise ParameterError(f"y0 has dtype {dtype}: expected floating point")
+    scene.check_precision(y0)
     t0 = as_float_array("t0", t0, (), dtype)
     t1 = as_float_array("t1", t1, (), dtype)
     if is_concrete(t0, t1):
@@ -160,7 +161,8 @@ def simulate(
     - `max_steps`: an error is raised, never a silently truncated result, if more are needed.
     - `adjoint`: any diffrax adjoint (default `diffrax.RecursiveCheckpointAdjoint()` where
       the call is traced by `jax.grad` or another transformation of the caller's; called with
-      concrete values, whose results nothing can differentiate, diffrax's plain loop,
+      concrete values, whose results nothing can differentiate, on a scene of arrays with
+      the default controller and a built-in explicit solver, diffrax's plain loop,
       `diffrax.ForwardMode()`: the same steps, traced in about two thirds of the time).
     - `events`: whether the scene's terminating events end the run (for a hybrid body, such
       as [`jaxdyn.RoughFloorRod`][], whether its modes switch; see `jaxdyn._hybrid`).
@@ -187,6 +189,9 @@ def simulate(
         traj = _fast_simulate(scene, y0, t1, t0, ts, rtol, atol, max_steps, events, dense)
         if traj is not None:
             return traj
+    # Explicit solvers of no fields of their own, and jaxdyn's own controller: no Python
+    # function of the caller's in them.
+    plain = stepsize_controller is None and (solver is None or type(solver) in _PLAIN_SOLVERS)
     y0, t0, t1, ts, solver, stepsize_controller, dt0 = _prepare_run(
         scene, y0, t0, t1, ts, solver, rtol, atol, stepsize_controller, dt0, max_steps)
     if progress is True:
@@ -203,8 +208,11 @@ def simulate(
     traced = not is_concrete(scene, y0, t0, t1, ts, dt0, rtol, atol) or _staged()
     if adjoint is None:
         # Concrete inputs give concrete outputs, which nothing can differentiate: the plain
-        # loop (`FORWARD`). Under a trace of the caller's, reverse mode must work.
-        adjoint = dfx.RecursiveCheckpointAdjoint() if traced else FORWARD
+        # loop (`FORWARD`). Under a trace of the caller's, reverse mode must work; so also
+        # where a Python function in the scene, solver or controller may close over the
+        # caller's tracers (an eager `jax.grad` through a torque law), which no check sees.
+        closed = not traced and plain and _arrays_only(scene)
+        adjoint = FORWARD if closed else dfx.RecursiveCheckpointAdjoint()
     traj = _simulate(
         scene, y0, t0, t1, ts,
         solver=solver,
@@ -223,6 +231,18 @@ def simulate(
     if not traced:
         raise_on_failure(traj)
     return traj
+
+
+_PLAIN_SOLVERS = (dfx.Tsit5, dfx.Dopri5, dfx.Dopri8, dfx.Heun, dfx.Bosh3, dfx.Euler,
+                  dfx.Midpoint, dfx.Ralston)
+
+
+def _arrays_only(*trees) -> bool:
+    """Whether the leaves of `trees` are concrete arrays and plain numbers only: no Python
+    function (which may close over a caller's tracer)."""
+    return all(isinstance(x, jax.Array | np.ndarray | np.generic | int | float | bool | str)
+               and not isinstance(x, jax.core.Tracer)
+               for x in jax.tree_util.tree_leaves(trees))
 
 
 def _staged() -> bool:
@@ -281,6 +301,7 @@ def _fast_simulate(scene, y0, t1, t0, ts, rtol, atol, max_steps, events, dense):
     checked = known.get(layout)
     if checked is None:
         y0 = scene.check_state(y0)  # raises on a wrong layout
+        scene.check_precision(y0)
         dtype = jnp.result_type(*jax.tree_util.tree_leaves(y0))
         if not jnp.issubdtype(dtype, jnp.floating) or len({v.dtype for v in y0.values()}) > 1:
             return None

@@ -78,15 +78,20 @@ class Trajectory(eqx.Module):
         """States at times `t` within the run, from its start to `t_final` (the event time
         where an event ended it), from the solver's dense output (`simulate(..., dense=True)`):
         for one time, a state; for a 1-D array of times, the states stacked along a first
-        axis. Times outside the run give nan (as saved times after an event are `inf`)."""
+        axis. Times outside the run give nan (as saved times after an event are `inf`): also
+        past an event within the last step, where the step's interpolant would go on."""
         if self.interpolation is None:
             raise ParameterError("evaluate needs the dense output: simulate(..., dense=True)")
         t = jnp.asarray(t, self.t_final.dtype)
         if t.ndim > 1:
             raise ParameterError(f"t has shape {t.shape}: expected a time or a 1-D array of "
                                  "times")
-        return (jax.vmap(self.interpolation.evaluate) if t.ndim else
-                self.interpolation.evaluate)(t)
+        y = (jax.vmap(self.interpolation.evaluate) if t.ndim else
+             self.interpolation.evaluate)(t)
+        outside = ~((t >= self.interpolation.t0) & (t <= self.t_final))
+        return jax.tree.map(
+            lambda v: jnp.where(outside.reshape(outside.shape + (1,) * (v.ndim - t.ndim)),
+                                jnp.nan, v), y)
 
     def resample(self, num: int) -> "Trajectory":
         """The same run saved at `num` evenly spaced times from its start to its end (the event

@@ -190,3 +190,29 @@ def test_an_implicit_solver_keeps_the_dense_output_of_a_run_with_switches():
     one = implicit.evaluate(times[7])  # one time: one state
     for k in a:
         assert one[k].shape == a[k].shape[1:] and np.array_equal(one[k], a[k][7]), k
+
+
+def test_an_eager_gradient_through_a_torque_law_that_closes_over_its_parameter():
+    """`jax.grad` (not under `jit`) of a run whose scene holds a Python torque law closing over
+    the differentiated value: the call's arrays are concrete, but the run must loop in reverse
+    mode (a concrete run's forward-mode loop would fail here). Against central differences."""
+    body = jd.RigidBody(INERTIA)
+
+    def final(a):
+        scene = jd.Scene(body, (jd.ExternalTorque(lambda t: a * jnp.array([1.0, 0.0, 0.0])),))
+        return jd.simulate(scene, scene.state(omega=jnp.asarray(OMEGA)), 1.0,
+                           rtol=1e-12).y_final["omega"][0]
+
+    h = 1e-4
+    fd = (final(0.1 + h) - final(0.1 - h)) / (2 * h)
+    np.testing.assert_allclose(jax.grad(final)(0.1), fd, rtol=1e-6)
+
+
+def test_a_float32_body_with_an_effect_of_python_numbers_runs_in_float32():
+    """The precision check refuses only a state whose derivative comes out wider (see
+    test_bad_input.py): a float32 body whose rotor was given as float64 numbers integrates in
+    float32, as before the check."""
+    scene = jd.Scene(jd.RigidBody(np.array([1.0, 2.0, 3.0], np.float32)),
+                     (jd.Rotor(np.array([0.0, 0.5, 0.0])),), attitude=True)
+    traj = jd.simulate(scene, scene.state(omega=np.array([0.1, 1.0, 0.1], np.float32)), 1.0)
+    assert traj.y_final["omega"].dtype == np.float32 and traj.outcome_name == "completed"

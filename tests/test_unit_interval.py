@@ -49,6 +49,18 @@ def test_dense_output_is_in_the_callers_time():
     assert np.all(np.isnan(np.asarray(dense.evaluate(25.1)["omega"])))
 
 
+def test_dense_output_ends_at_the_event():
+    """A run ended by an event (the rod lying flat) within its last step: `evaluate` past
+    the event time gives nan, not the step's interpolant going on past lying flat."""
+    rod = jd.Scene(jd.FallingRod())
+    traj = jd.simulate(rod, rod.state(theta=0.3), 5.0, dense=True)
+    end = float(traj.t_final)
+    assert traj.outcome_name == "event"
+    assert np.isclose(float(traj.evaluate(end)["theta"]), np.pi / 2, atol=1e-9)
+    assert np.isnan(float(traj.evaluate(end * (1 + 1e-9))["theta"]))
+    assert np.all(np.isnan(np.asarray(traj.evaluate(jnp.array([end + 1e-3, 7.0]))["theta"])))
+
+
 def test_the_final_state_moves_with_the_end_time_as_the_vector_field_says():
     """`d y(t1) / d t1 = f(y(t1))`: the span now scales every step of the run, so a wrong
     scale shows here (central differences of concrete runs at tight tolerances; reverse-mode
