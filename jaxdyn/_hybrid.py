@@ -73,13 +73,13 @@ from ._solvers._recorded import Table, empty_table
 from ._solvers._sampled import Samples
 from ._tolerance import ScaledPIDController
 
-# Stands in for the events of the other group in each condition's minimum.
 # The loop of a run whose results nothing differentiates (a call with concrete values, an
 # ensemble): diffrax's plain `lax.while_loop` and stage scan. `RecursiveCheckpointAdjoint`'s
 # checkpointed loop takes the same steps but traces the step several times over (the falling
 # rod's program: 0.55 s of tracing against 0.40 s).
 FORWARD = dfx.ForwardMode()
 
+# Stands in for the events of the other group in each condition's minimum.
 _BIG = 1e6
 
 

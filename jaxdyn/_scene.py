@@ -11,6 +11,7 @@ from jaxtyping import Array
 from ._body import AbstractBody
 from ._custom_types import Scalar, State
 from ._effect import AbstractEffect
+from ._programs import _signature
 from ._validation import ParameterError
 
 _SHAPES: dict = {}  # state layouts by scene structure: they never change for a structure
@@ -142,36 +143,33 @@ class Scene(eqx.Module):
         derivative under this scene comes out in another (a float32 state with float64
         parameters), naming the variable, both dtypes and the scene's wider values. Checked by
         shapes and dtypes alone (`jax.eval_shape`), once per structure."""
+        floats = {k: jnp.result_type(v) for k, v in y.items()
+                  if jnp.issubdtype(jnp.result_type(v), jnp.floating)}
+        if not floats:
+            return
         leaves, treedef = jax.tree_util.tree_flatten(self)
-        kinds = {jnp.result_type(v) for v in y.values()}
-        if len(kinds) == 1 and jnp.issubdtype(next(iter(kinds)), jnp.floating):
-            bits = jnp.finfo(next(iter(kinds))).bits
-            if all(not (hasattr(x, "dtype") and jnp.issubdtype(x.dtype, jnp.floating))
-                   or jnp.finfo(x.dtype).bits <= bits for x in leaves):
-                return  # nothing in the scene is wider than the state: nothing to widen it
+        bits = min(jnp.finfo(d).bits for d in floats.values())
+        if len(set(floats.values())) == 1 and not any(
+                _floating(x) and jnp.finfo(x.dtype).bits > bits for x in leaves):
+            return  # nothing in the scene is wider than the state: nothing to widen it
         # (Cached for scenes of arrays and numbers: a Python function, which may hold a
         # caller's tracers, is not kept.)
         key = None if any(callable(x) for x in leaves) else (
-            treedef, tuple(_aval(x) for x in leaves), tuple((k, _aval(v)) for k, v in y.items()))
-        found = None if key is None else _PRECISION.get(key)
+            treedef, _signature(leaves), tuple(y), _signature(y.values()))
+        found = _PRECISION.get(key)
         if found is None:
             spec = {k: jax.ShapeDtypeStruct(jnp.shape(v), jnp.result_type(v)) for k, v in y.items()}
-            floats = [k for k, v in spec.items() if jnp.issubdtype(v.dtype, jnp.floating)]
             with jax.numpy_dtype_promotion("standard"):  # (the dtypes it would promote to)
-                t = jax.ShapeDtypeStruct((), jnp.result_type(*(spec[k].dtype for k in floats))
-                                         if floats else jnp.result_type(float))
+                t = jax.ShapeDtypeStruct((), jnp.result_type(*floats.values()))
                 dy = jax.eval_shape(lambda t, y: self.vector_field(t, y), t, spec)
-            found = tuple(
-                (k, spec[k].dtype, dy[k].dtype) for k in floats
-                if k in dy and dy[k].dtype != spec[k].dtype)
+            found = tuple((k, d, dy[k].dtype) for k, d in floats.items() if dy[k].dtype != d)
             if key is not None:
                 _PRECISION[key] = found
         if found:
             name, have, get = found[0]
             wider = [jax.tree_util.keystr(path).lstrip(".")
                      for path, x in jax.tree_util.tree_flatten_with_path(self)[0]
-                     if hasattr(x, "dtype") and x.dtype == get
-                     and not getattr(x, "weak_type", False)]
+                     if _floating(x) and x.dtype == get and not getattr(x, "weak_type", False)]
             held = f" (the scene holds {get.name} values: {', '.join(wider[:3])})" if wider else ""
             raise ParameterError(
                 f"y0[{name!r}] is {have.name} but its derivative under this scene is "
@@ -419,8 +417,8 @@ class Scene(eqx.Module):
 _PRECISION: dict = {}  # Scene.check_precision's findings, per structure
 
 
-def _aval(x):
-    return (jnp.shape(x), jnp.result_type(x), bool(getattr(x, "weak_type", False)))
+def _floating(x) -> bool:
+    return hasattr(x, "dtype") and jnp.issubdtype(x.dtype, jnp.floating)
 
 
 def _own_state(y: State, label: str) -> State:
