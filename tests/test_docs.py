@@ -111,17 +111,15 @@ def test_pages_render_in_a_browser(site, tmp_path):
         for page, text in (("", "Getting started"), ("api/simulate/", "jaxdyn.simulate"),
                            ("notebooks/01_falling_rod/", "falling rod")):
             shot = tmp_path / (page.strip("/").replace("/", "_") or "home")
+            # One launch per page both draws it and dumps its DOM after the scripts ran.
             proc = subprocess.run(
                 [browser, "--headless", "--no-sandbox", "--disable-gpu", "--hide-scrollbars",
                  f"--screenshot={shot}.png", "--window-size=1280,1600",
-                 "--virtual-time-budget=5000", f"{base}/{page}"],
+                 "--virtual-time-budget=5000", "--dump-dom", f"{base}/{page}"],
                 capture_output=True, text=True, timeout=120)
             assert proc.returncode == 0 and Path(f"{shot}.png").stat().st_size > 20_000, \
                 proc.stderr[-2000:]
-            dom = subprocess.run(
-                [browser, "--headless", "--no-sandbox", "--disable-gpu", "--dump-dom",
-                 "--virtual-time-budget=5000", f"{base}/{page}"],
-                capture_output=True, text=True, timeout=120).stdout
+            dom = proc.stdout
             assert text.lower() in dom.lower(), page
     finally:
         server.shutdown()
