@@ -69,7 +69,28 @@ SLOW_FIRST = (
 )
 
 
+# Slow sweeps: the parameter values of a check beyond the representatives that the suite runs
+# (every solver, outcome or mode is still checked at least once). They are marked
+# `pytest.mark.sweep` and left out unless `--sweeps` is given; `python benchmarks/sweeps.py`
+# runs them all and prints one JSON object.
+def pytest_addoption(parser):
+    parser.addoption("--sweeps", action="store_true",
+                     help="also run the slow sweeps (tests marked `sweep`; "
+                          "benchmarks/sweeps.py runs them)")
+
+
+def pytest_configure(config):
+    config.addinivalue_line("markers", "sweep: a further parameter value of a check the suite "
+                                       "already runs; left out unless --sweeps is given")
+
+
 def pytest_collection_modifyitems(config, items):
+    if not config.getoption("--sweeps"):
+        swept = [item for item in items if item.get_closest_marker("sweep")]
+        if swept:
+            config.hook.pytest_deselected(items=swept)
+            items[:] = [item for item in items if not item.get_closest_marker("sweep")]
+
     def rank(item):
         where = item.nodeid.split("/")[-1]
         return next((i for i, p in enumerate(SLOW_FIRST) if where.startswith(p)),

@@ -77,8 +77,15 @@ def test_simulate_labels_each_outcome(expected):
         assert MESSAGES[Outcome[expected]].split(":")[0] in str(info.value)
 
 
-@pytest.mark.parametrize("mode", ["adaptive", "lockstep", "vmap"])
-@pytest.mark.parametrize("expected", list(CASES))
+MODES = ("adaptive", "lockstep", "vmap")
+
+
+# Each outcome in one mode, the modes taken in turn (each mode labels several outcomes); the
+# other modes of each outcome are a sweep.
+@pytest.mark.parametrize("expected, mode", [
+    pytest.param(expected, mode, id=f"{expected}-{mode}",
+                 marks=() if mode == MODES[i % len(MODES)] else pytest.mark.sweep)
+    for i, expected in enumerate(CASES) for mode in MODES])
 def test_ensemble_labels_each_outcome(expected, mode):
     scene, y0, t1, kw = CASES[expected]()
     res = jd.ensemble(scene, y0, t1, n=3, mode=mode, **kw)
