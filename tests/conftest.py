@@ -89,7 +89,7 @@ def pytest_collection_modifyitems(config, items):
         swept = [item for item in items if item.get_closest_marker("sweep")]
         if swept:
             config.hook.pytest_deselected(items=swept)
-            items[:] = [item for item in items if not item.get_closest_marker("sweep")]
+            items[:] = [item for item in items if item not in swept]
 
     def rank(item):
         where = item.nodeid.split("/")[-1]
