@@ -46,7 +46,7 @@ def test_posterior_agrees_with_gauss_newton_where_it_holds():
     # per draw on a nearly Gaussian posterior (about 7; Stan-style adaptation of a dense mass
     # matrix over 150 warm-up steps took about 290 here).
     assert res.posterior_leapfrogs < 20, res.posterior_leapfrogs
-    # No draw's trajectory reached NUTS's bound (127 leapfrog steps, `_posterior.MAX_DOUBLINGS`).
+    # No draw's trajectory reached NUTS's bound (1023 leapfrog steps, `_posterior.MAX_DOUBLINGS`).
     assert res.posterior_diagnostics["max_depth_draws"] == [0, 0, 0, 0]
     # Mean within 0.5 sigma: the Monte Carlo standard error of 200 correlated draws (an
     # effective sample size of 50 or more) is at most 0.14 sigma. Spread within 30 %.

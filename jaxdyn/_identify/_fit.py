@@ -561,7 +561,7 @@ class FitResult:
       number of leapfrog steps per draw (each costs one forward-mode gradient through the
       integrator); `posterior_diagnostics`: by chain `"acceptance"`, `"divergences"`,
       `"leapfrogs"`, `"max_depth_draws"` (draws whose trajectory reached NUTS's bound of
-      127 leapfrog steps: `fit` warns where they are more than a tenth of a chain's) and
+      1023 leapfrog steps: `fit` warns where they are more than a tenth of a chain's) and
       `"bfmi"` (energy fraction of missing information; below about 0.3 a chain explores
       poorly), and by sampled component (the sampling coordinates, for
       [`jaxdyn.ValidInertia`][] the linear coordinates of the shape) the split `"rhat"`

@@ -48,17 +48,19 @@ from .._errors import warn
 
 RHAT_MAX = 1.05  # above this split R-hat, the chains disagree: a warning
 ACCEPTANCE_MIN = 0.3  # below this mean acceptance rate (NUTS aims at 0.8), a chain is stuck
-# The most trajectory doublings of one NUTS step: at most 2**7 - 1 = 127 leapfrog steps
-# (Stan's and blackjax's default, 10, allows 1023). With the Gauss--Newton covariance as
-# the mass matrix a draw takes a few to a few tens of steps; the deep trees came in the
-# warm-up, where dual averaging's first guesses drive the step size far below its final
-# value for a few iterations: on the nearly axisymmetric body of tests/test_posterior.py
-# (keys 1-3) 200-360 leapfrog steps per warm-up iteration on a chain's mean with up to
-# 1023, which was 70-85 % of the sampling time, against 24-41 with this bound (and the
-# first step size found as below), the sampling 2x faster with the same R-hat and ESS. A
-# truncated NUTS trajectory is still an exact transition; draws that reach the bound are
-# counted (`"max_depth_draws"`) and said in a warning where they are many.
-MAX_DOUBLINGS = 7
+# The most trajectory doublings of one NUTS step: at most 2**10 - 1 = 1023 leapfrog steps
+# (Stan's and blackjax's default). Draws that reach it are counted (`"max_depth_draws"`) and
+# said in a warning where they are many. Most of the sampling time on the nearly axisymmetric
+# body of `benchmarks/identify.py --coverage` is the warm-up's (57 leapfrog steps per warm-up
+# iteration on average against 29 per draw, up to 1023: dual averaging's first guesses drive
+# the step size far below its final value for a few iterations). Measured on its 12 seeds
+# (28 Nov 2026) and not kept: a bound of 7 doublings (127 steps) with the warm-up started
+# from Hoffman and Gelman's reasonable step size took 46 % fewer gradients per fit, but its
+# central 90 % intervals held the truth in 19 of 24 against 24 of 24 (the truncated
+# trajectories explore less, and 50 draws per chain are few); the reasonable start alone took
+# 16 % fewer, holding it in 20 of 24. Each is within the binomial bound of 90 % (+-18 % for
+# 24); the gain did not justify the doubt.
+MAX_DOUBLINGS = 10
 DEPTH_WARN = 0.1  # a warning when more than this fraction of a chain's draws reach the bound
 DISPERSION = 2.0  # chains start at this many Gauss--Newton standard deviations
 
@@ -178,23 +180,11 @@ def _chain(sampled, w, free_index, w_start, free, ts, data, weights, s2, inverse
                                     info.num_integration_steps, info.energy,
                                     info.num_trajectory_expansions >= MAX_DOUBLINGS)
 
-    k_warm, k_draw, k_step = jax.random.split(key, 3)
+    k_warm, k_draw = jax.random.split(key)
     # A dispersed start outside the support (a body that is not physical, where the optimum
     # lies near that boundary) would never move: such a chain starts at the optimum instead.
     start = jnp.where(jnp.isfinite(log_density(start)), start, w[free_index])
-
-    def one_leapfrog(step_size):
-        return blackjax.hmc(log_density, step_size=step_size, inverse_mass_matrix=inverse_mass,
-                            num_integration_steps=1).step
-
-    # Dual averaging starts from a step size whose single leapfrog step is accepted about as
-    # often as NUTS aims at (Hoffman and Gelman's heuristic, halving or doubling from 1):
-    # started from 1 it overshot and then undershot, with the deep trees said above.
-    with jax.numpy_dtype_promotion("standard"):
-        first = blackjax.adaptation.step_size.find_reasonable_step_size(
-            k_step, one_leapfrog, blackjax.hmc.init(start, log_density),
-            jnp.asarray(1.0, start.dtype), 0.8)
-    da = da_init(first)
+    da = da_init(jnp.asarray(1.0, start.dtype))
     keys = jnp.concatenate([jax.random.split(k_warm, warmup), jax.random.split(k_draw, draws)])
     warming = jnp.arange(warmup + draws) < warmup
     with jax.numpy_dtype_promotion("standard"):
