@@ -278,11 +278,12 @@ def sample(problem, u, free, u_start, ts, data, weights, s2, cov, key, summaries
             "draws repeat a few points and are not a sample of the posterior. Sample again "
             "with another key=, or longer (larger warmup=).",
             RuntimeWarning)
-    deep = {i: n for i, n in enumerate(report["max_depth_draws"]) if n > DEPTH_WARN * per_chain}
-    if deep:
+    capped = {i: n for i, n in enumerate(report["max_depth_draws"])
+              if n > DEPTH_WARN * per_chain}
+    if capped:
         warn(
-            f"posterior: draws of chain(s) {sorted(deep)} reached NUTS's bound of "
-            f"{2**MAX_DOUBLINGS - 1} leapfrog steps ({deep} of {per_chain} draws each): the "
+            f"posterior: draws of chain(s) {sorted(capped)} reached NUTS's bound of "
+            f"{2**MAX_DOUBLINGS - 1} leapfrog steps ({capped} of {per_chain} draws each): the "
             "trajectories were cut short and the chains explore slowly (a posterior far from "
             "the Gauss-Newton approximation's scales). Compare the draws with "
             "FitResult.std, or sample longer (larger posterior=).",
