@@ -1099,10 +1099,11 @@ def fit(
       `FitResult.posterior`). For where the Gauss--Newton intervals cannot be trusted, as
       for the axes of a nearly axisymmetric body. Default 0: none; otherwise at least four
       draws per chain (`posterior >= 3 * chains + 1`), for the chains' split R-hat.
-    - `chains`: the number of NUTS chains (run side by side, started dispersed around the
-      optimum; `posterior` draws in all, each chain after its own `warmup`). Their
-      agreement is checked (split R-hat in `FitResult.posterior_diagnostics`; a warning when
-      they disagree, and when a chain is stuck: mean acceptance below 0.3). Default 4.
+    - `chains`: the number of NUTS chains (run side by side, each on a thread of its own and so
+      on the processor's cores; started dispersed around the optimum; `posterior` draws in all,
+      each chain after its own `warmup`). Their agreement is checked (split R-hat in
+      `FitResult.posterior_diagnostics`; a warning when they disagree, and when a chain is
+      stuck: mean acceptance below 0.3). Default 4.
 
     Long records are fitted by multiple shooting: the state at the start of each segment is
     an unknown of its own, started from the data where they measure it (gyro rates less the

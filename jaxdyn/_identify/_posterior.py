@@ -31,13 +31,16 @@ its density in the moments carries the Vandermonde factor, and the posterior's c
 intervals of the larger of the two close moments covered the truth in 63 % of 40 noise
 draws (both moments 79 %).
 
-Several chains (NUTS, Hoffman and Gelman 2014), one after the other, started dispersed
-around the optimum (twice the Gauss--Newton spread), each with the Gauss--Newton covariance in
-the sampling coordinates as its (dense) inverse mass matrix and its step size adapted by dual
-averaging during warm-up; gradients come from forward mode through the integrator, like the
-fit's Jacobians. The chains' agreement is checked by the split potential scale reduction
-(R-hat, Gelman et al. 2013) and their effective sample size.
+Several chains (NUTS, Hoffman and Gelman 2014), side by side on the processor's cores,
+started dispersed around the optimum (twice the Gauss--Newton spread), each with the
+Gauss--Newton covariance in the sampling coordinates as its (dense) inverse mass matrix and its
+step size adapted by dual averaging during warm-up; gradients come from forward mode through
+the integrator, like the fit's Jacobians. The chains' agreement is checked by the split
+potential scale reduction (R-hat, Gelman et al. 2013) and their effective sample size.
 """
+
+import concurrent.futures
+import functools
 
 import equinox as eqx
 import jax
@@ -202,12 +205,20 @@ def _split_halves(x):
     return np.concatenate([x[:, :half], x[:, half:2 * half]], axis=0)
 
 
+@functools.cache
+def _rhat_and_ess():
+    """blackjax's split R-hat and effective sample size as one compiled program: called
+    eagerly, they traced and compiled their loops anew on every fit (0.25 s of a 2.4 s fit
+    with `posterior=200`)."""
+    blackjax = _import_blackjax()
+    return jax.jit(lambda split: (blackjax.diagnostics.potential_scale_reduction(split),
+                                  blackjax.diagnostics.effective_sample_size(split)))
+
+
 def diagnostics(x, energy, acceptance, divergent, steps, deep, warm_steps, names):
     """Convergence diagnostics of draws `x` (chains, draws, components) named `names`."""
-    blackjax = _import_blackjax()
     split = _split_halves(np.asarray(x, np.float64))
-    rhat = np.asarray(blackjax.diagnostics.potential_scale_reduction(split))
-    ess = np.asarray(blackjax.diagnostics.effective_sample_size(split))
+    rhat, ess = (np.asarray(v) for v in _rhat_and_ess()(split))
     # Energy Bayesian fraction of missing information (Betancourt 2016) of each chain: below
     # about 0.3, the momentum resampling cannot move the chain across the energy levels (a
     # heavy tail or a funnel).
@@ -245,13 +256,24 @@ def sample(problem, u, free, u_start, ts, data, weights, s2, cov, key, summaries
     G = _coordinate_jacobian(problem, sampled, u)[index][:, index]
     k_start, k_chains = jax.random.split(key)
     inverse_mass, starts = _mass_and_starts(G, cov[index][:, index], w[index], k_start, chains)
-    # One chain after the other, by one compiled program: vmapped, the chains' nested loops
-    # (NUTS's trajectories around the integrator's steps) were measured to run tens of times
-    # slower on a CPU.
-    runs = [_chain(sampled, w, jnp.asarray(index), _to_sampling(problem, sampled, u_start),
-                   jnp.asarray(free), ts, data, weights, s2, inverse_mass, start, k,
-                   draws=per_chain, warmup=warmup)
-            for start, k in zip(starts, jax.random.split(k_chains, chains))]
+    # One compiled program, called for each chain on a thread of its own. Vmapped, the
+    # chains' nested loops (NUTS's trajectories around the integrator's steps) were measured
+    # to run tens of times slower on a CPU; XLA:CPU runs a call on one core without Python's
+    # lock, so chains called from threads run side by side, where calls from one thread run
+    # one after the other (the nearly axisymmetric body of notebook 09, 2 cores: 47 s for
+    # its four chains against 80 s). A thread per chain: the longest chain then starts at
+    # once. Traced and compiled here, in the caller's configuration (x64 and the default
+    # device are per thread in JAX); the threads only call the program, and each chain's
+    # draws are those it gives alone.
+    common = (sampled, w, jnp.asarray(index), _to_sampling(problem, sampled, u_start),
+              jnp.asarray(free), ts, data, weights, s2, inverse_mass)
+    keys = jax.random.split(k_chains, chains)
+    chain = _chain.lower(*common, starts[0], keys[0], draws=per_chain,
+                         warmup=warmup).compile()
+    with concurrent.futures.ThreadPoolExecutor(chains) as pool:
+        runs = list(pool.map(
+            lambda start, k: jax.block_until_ready(
+                chain(*common, start, k, draws=per_chain, warmup=warmup)), starts, keys))
     ws, acceptance, divergent, steps, energy, deep, warm_steps = (
         jnp.stack(x) for x in zip(*runs))
     names = [c for name, m in zip(sampled.names, sampled.maps) for c in m.components(name)]
