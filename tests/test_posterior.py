@@ -11,6 +11,8 @@ that body takes minutes: `python benchmarks/identify.py --coverage 20`.
 Both fits share one compiled sampler (the same problem structure, draws and warm-up).
 """
 
+import warnings
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -217,3 +219,45 @@ def test_a_direction_the_data_do_not_determine_keeps_the_priors_spread():
     assert np.std(ratio) < 0.01 * fitted
     assert abs(np.mean(ratio) - fitted) < 3 * np.std(ratio), (np.mean(ratio), fitted)
     assert res.posterior_leapfrogs < 50, res.posterior_leapfrogs
+
+
+def test_diagnostics_warn_on_disagreeing_stuck_and_capped_chains():
+    """The warnings on a posterior's chains, from synthetic chains whose defects are known
+    (a real sampler reaches NUTS's bound only on a posterior far from its mass matrix):
+    chain 3 sits apart (split R-hat), chain 1 accepts almost nothing, chain 2 has 10 of its
+    50 draws at the bound (more than a tenth) and chain 0 has 5 (a tenth: no warning)."""
+    from jaxdyn._identify import _posterior
+
+    rng = np.random.default_rng(0)
+    chains, draws = 4, 50
+    x = rng.normal(size=(chains, draws, 2))
+    acceptance = np.full((chains, draws), 0.8)
+    deep = np.zeros((chains, draws), bool)
+    energy = rng.normal(size=(chains, draws))
+    args = (np.zeros((chains, draws), bool), np.full((chains, draws), 7),
+            np.full((chains, 10), 7), ["a", "b"])
+
+    def warnings_of(x, acceptance, deep):
+        report = _posterior.diagnostics(x, energy, acceptance, *args[:2], deep, *args[2:])
+        with warnings.catch_warnings(record=True) as record:
+            warnings.simplefilter("always")
+            _posterior.warn_on_diagnostics(report)
+        assert all(w.category is RuntimeWarning for w in record)
+        return report, [str(w.message) for w in record]
+
+    report, messages = warnings_of(x, acceptance, deep)
+    assert messages == [], messages
+    assert report["max_depth_draws"] == [0, 0, 0, 0] and report["max_rhat"] < 1.05
+
+    x[3] += 5.0
+    acceptance[1] = 0.05
+    deep[2, :10] = True
+    deep[0, :5] = True
+    report, messages = warnings_of(x, acceptance, deep)
+    assert report["max_depth_draws"] == [5, 0, 10, 0]
+    assert len(messages) == 3, messages
+    rhat, stuck, capped = messages
+    assert "split R-hat above 1.05" in rhat and "'a'" in rhat and "'b'" in rhat
+    assert "chain(s) [1]" in stuck and "0.05" in stuck
+    assert "chain(s) [2]" in capped and "1023 leapfrog steps" in capped
+    assert "{2: 10} of 50 draws" in capped

@@ -281,6 +281,15 @@ def sample(problem, u, free, u_start, ts, data, weights, s2, cov, key, summaries
                          deep, warm_steps, [names[i] for i in index])
     flat = ws.reshape(-1, ws.shape[-1])[:draws]
     out = jax.tree.map(np.asarray, jax.vmap(lambda x: summaries(sampled, x, free))(flat))
+    warn_on_diagnostics(report)
+    return out, report
+
+
+def warn_on_diagnostics(report):
+    """The warnings of `fit(posterior=...)` on its chains' diagnostics (`diagnostics`): the
+    chains disagree (split R-hat), a chain is stuck (acceptance), or many draws reached
+    NUTS's bound of leapfrog steps."""
+    chains, per_chain = report["chains"], report["draws_per_chain"]
     bad = {k: round(v, 3) for k, v in report["rhat"].items() if not v <= RHAT_MAX}
     if bad:
         warn(
@@ -310,4 +319,3 @@ def sample(problem, u, free, u_start, ts, data, weights, s2, cov, key, summaries
             "the Gauss-Newton approximation's scales). Compare the draws with "
             "FitResult.std, or sample longer (larger posterior=).",
             RuntimeWarning)
-    return out, report
