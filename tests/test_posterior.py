@@ -223,9 +223,11 @@ def test_a_direction_the_data_do_not_determine_keeps_the_priors_spread():
 
 def test_diagnostics_warn_on_disagreeing_stuck_and_capped_chains():
     """The warnings on a posterior's chains, from synthetic chains whose defects are known
-    (a real sampler reaches NUTS's bound only on a posterior far from its mass matrix):
-    chain 3 sits apart (split R-hat), chain 1 accepts almost nothing, chain 2 has 10 of its
-    50 draws at the bound (more than a tenth) and chain 0 has 5 (a tenth: no warning)."""
+    and lie just past each threshold (a real sampler reaches NUTS's bound only on a
+    posterior far from its mass matrix): chain 3 shifted in component `a` (split R-hat about
+    1.12), chain 1 accepting a quarter of its proposals (chain 0, at 0.35, is not stuck),
+    chain 2 with 10 of its 50 draws at the bound (more than a tenth; chain 0 has 5, a tenth:
+    no warning); and a draw that is not a number (R-hat NaN: a warning, not silence)."""
     from jaxdyn._identify import _posterior
 
     rng = np.random.default_rng(0)
@@ -234,11 +236,12 @@ def test_diagnostics_warn_on_disagreeing_stuck_and_capped_chains():
     acceptance = np.full((chains, draws), 0.8)
     deep = np.zeros((chains, draws), bool)
     energy = rng.normal(size=(chains, draws))
-    args = (np.zeros((chains, draws), bool), np.full((chains, draws), 7),
-            np.full((chains, 10), 7), ["a", "b"])
 
     def warnings_of(x, acceptance, deep):
-        report = _posterior.diagnostics(x, energy, acceptance, *args[:2], deep, *args[2:])
+        report = _posterior.diagnostics(
+            x, energy=energy, acceptance=acceptance, divergent=np.zeros_like(deep),
+            steps=np.full((chains, draws), 7), deep=deep,
+            warm_steps=np.full((chains, 10), 7), names=["a", "b"])
         with warnings.catch_warnings(record=True) as record:
             warnings.simplefilter("always")
             _posterior.warn_on_diagnostics(report)
@@ -249,15 +252,23 @@ def test_diagnostics_warn_on_disagreeing_stuck_and_capped_chains():
     assert messages == [], messages
     assert report["max_depth_draws"] == [0, 0, 0, 0] and report["max_rhat"] < 1.05
 
-    x[3] += 5.0
-    acceptance[1] = 0.05
+    x[3, :, 0] += 0.8
+    acceptance[0] = 0.35
+    acceptance[1] = 0.25
     deep[2, :10] = True
     deep[0, :5] = True
     report, messages = warnings_of(x, acceptance, deep)
+    assert 1.05 < report["rhat"]["a"] < 1.2 and report["rhat"]["b"] < 1.05, report["rhat"]
     assert report["max_depth_draws"] == [5, 0, 10, 0]
     assert len(messages) == 3, messages
     rhat, stuck, capped = messages
-    assert "split R-hat above 1.05" in rhat and "'a'" in rhat and "'b'" in rhat
-    assert "chain(s) [1]" in stuck and "0.05" in stuck
+    assert "split R-hat above 1.05" in rhat and "'a'" in rhat and "'b'" not in rhat
+    assert "chain(s) [1]" in stuck and "{1: 0.25}" in stuck
     assert "chain(s) [2]" in capped and "1023 leapfrog steps" in capped
     assert "{2: 10} of 50 draws" in capped
+
+    x = rng.normal(size=(chains, draws, 2))
+    x[0, 0, 1] = np.nan
+    report, messages = warnings_of(x, np.full((chains, draws), 0.8), np.zeros_like(deep))
+    assert np.isnan(report["rhat"]["b"])
+    assert len(messages) == 1 and "'b': nan" in messages[0], messages

@@ -1099,8 +1099,8 @@ def fit(
       `FitResult.posterior`). For where the Gauss--Newton intervals cannot be trusted, as
       for the axes of a nearly axisymmetric body. Default 0: none; otherwise at least four
       draws per chain (`posterior >= 3 * chains + 1`), for the chains' split R-hat.
-    - `chains`: the number of NUTS chains (run side by side, each on a thread of its own and so
-      on the processor's cores; started dispersed around the optimum; `posterior` draws in all,
+    - `chains`: the number of NUTS chains (run side by side, each on a thread of its own: on a
+      CPU, on cores of their own; started dispersed around the optimum; `posterior` draws in all,
       each chain after its own `warmup`). Their agreement is checked (split R-hat in
       `FitResult.posterior_diagnostics`; a warning when they disagree, and when a chain is
       stuck: mean acceptance below 0.3). Default 4.

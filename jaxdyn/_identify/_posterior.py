@@ -31,7 +31,7 @@ its density in the moments carries the Vandermonde factor, and the posterior's c
 intervals of the larger of the two close moments covered the truth in 63 % of 40 noise
 draws (both moments 79 %).
 
-Several chains (NUTS, Hoffman and Gelman 2014), side by side on the processor's cores,
+Several chains (NUTS, Hoffman and Gelman 2014), side by side on a CPU's cores,
 started dispersed around the optimum (twice the Gauss--Newton spread), each with the
 Gauss--Newton covariance in the sampling coordinates as its (dense) inverse mass matrix and its
 step size adapted by dual averaging during warm-up; gradients come from forward mode through
@@ -259,21 +259,28 @@ def sample(problem, u, free, u_start, ts, data, weights, s2, cov, key, summaries
     # One compiled program, called for each chain on a thread of its own. Vmapped, the
     # chains' nested loops (NUTS's trajectories around the integrator's steps) were measured
     # to run tens of times slower on a CPU; XLA:CPU runs a call on one core without Python's
-    # lock, so chains called from threads run side by side, where calls from one thread run
-    # one after the other (the nearly axisymmetric body of notebook 09, 2 cores: 47 s for
-    # its four chains against 80 s). A thread per chain: the longest chain then starts at
-    # once. Traced and compiled here, in the caller's configuration (x64 and the default
-    # device are per thread in JAX); the threads only call the program, and each chain's
-    # draws are those it gives alone.
-    common = (sampled, w, jnp.asarray(index), _to_sampling(problem, sampled, u_start),
-              jnp.asarray(free), ts, data, weights, s2, inverse_mass)
+    # lock, so chains called from threads run side by side on a CPU's cores, where calls
+    # from one thread run one after the other (the nearly axisymmetric body of notebook 09,
+    # 2 cores: 47 s for its four chains against 80 s). A thread per chain: the longest chain
+    # then starts at once. Traced and compiled here, with every input already a JAX array,
+    # under the caller's settings (`jax.enable_x64`, `jax.default_device` and the like are
+    # per thread as context managers); the threads only call the program, and each chain's
+    # draws are those it gives alone. A call cannot be interrupted: a chain that fails, or
+    # Ctrl-C, is reported once the chains already running have ended.
+    common = jax.tree.map(
+        lambda x: jnp.asarray(x) if isinstance(x, (np.ndarray, np.generic)) else x,
+        (sampled, w, jnp.asarray(index), _to_sampling(problem, sampled, u_start),
+         jnp.asarray(free), ts, data, weights, s2, inverse_mass))
     keys = jax.random.split(k_chains, chains)
-    chain = _chain.lower(*common, starts[0], keys[0], draws=per_chain,
-                         warmup=warmup).compile()
-    with concurrent.futures.ThreadPoolExecutor(chains) as pool:
-        runs = list(pool.map(
-            lambda start, k: jax.block_until_ready(
-                chain(*common, start, k, draws=per_chain, warmup=warmup)), starts, keys))
+    static = dict(draws=per_chain, warmup=warmup)  # (the compiled program ignores their values)
+    if jax.config.jax_disable_jit:  # (no compiled program: each chain run as Python)
+        runs = [_chain(*common, start, k, **static) for start, k in zip(starts, keys)]
+    else:
+        chain = _chain.lower(*common, starts[0], keys[0], **static).compile()
+        with concurrent.futures.ThreadPoolExecutor(chains) as pool:
+            runs = list(pool.map(
+                lambda start, k: jax.block_until_ready(chain(*common, start, k, **static)),
+                starts, keys))
     ws, acceptance, divergent, steps, energy, deep, warm_steps = (
         jnp.stack(x) for x in zip(*runs))
     names = [c for name, m in zip(sampled.names, sampled.maps) for c in m.components(name)]
