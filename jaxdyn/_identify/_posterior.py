@@ -51,18 +51,19 @@ from .._errors import warn
 
 RHAT_MAX = 1.05  # above this split R-hat, the chains disagree: a warning
 ACCEPTANCE_MIN = 0.3  # below this mean acceptance rate (NUTS aims at 0.8), a chain is stuck
-# The most trajectory doublings of one NUTS step: at most 2**10 - 1 = 1023 leapfrog steps
-# (Stan's and blackjax's default). Draws that reach it are counted (`"max_depth_draws"`) and
-# said in a warning where they are many. Most of the sampling time on the nearly axisymmetric
-# body of `benchmarks/identify.py --coverage` is the warm-up's (57 leapfrog steps per warm-up
-# iteration on average against 29 per draw, up to 1023: dual averaging's first guesses drive
-# the step size far below its final value for a few iterations). Measured on its 12 seeds
-# (28 Nov 2026) and not kept: a bound of 7 doublings (127 steps) with the warm-up started
-# from Hoffman and Gelman's reasonable step size took 46 % fewer gradients per fit, but its
-# central 90 % intervals held the truth in 19 of 24 against 24 of 24 (the truncated
-# trajectories explore less, and 50 draws per chain are few); the reasonable start alone took
-# 16 % fewer, holding it in 20 of 24. Each is within the binomial bound of 90 % (+-18 % for
-# 24); the gain did not justify the doubt.
+# The most trajectory doublings of one NUTS step: at most 2**10 - 1 = 1023 leapfrog steps (Stan's
+# and blackjax's default). Draws that reach it are counted (`"max_depth_draws"`) and said in a
+# warning where they are many. Most of the sampling time on the nearly axisymmetric body of
+# `benchmarks/identify.py --coverage` is the warm-up's (57 leapfrog steps per warm-up iteration on
+# average against 29 per draw, up to 1023). Not a collapse of dual averaging's first steps:
+# recorded per warm-up iteration on notebook 09's body (29 Nov 2026), the step sizes stayed within
+# 0.01-14, and the chains with deep trees settled at steps of 0.03-0.04, where the Gauss--Newton
+# mass matrix does not fit that posterior. Measured on the coverage benchmark's 12 seeds (28 Nov
+# 2026) and not kept: a bound of 7 doublings (127 steps) with the warm-up started from Hoffman and
+# Gelman's reasonable step size took 46 % fewer gradients per fit, but its central 90 % intervals
+# held the truth in 19 of 24 against 24 of 24 (the truncated trajectories explore less, and 50
+# draws per chain are few); the reasonable start alone took 16 % fewer, holding it in 20 of 24.
+# Each is within the binomial bound of 90 % (+-18 % for 24); the gain did not justify the doubt.
 MAX_DOUBLINGS = 10
 DEPTH_WARN = 0.1  # a warning when more than this fraction of a chain's draws reach the bound
 DISPERSION = 2.0  # chains start at this many Gauss--Newton standard deviations
@@ -269,8 +270,8 @@ def sample(problem, u, free, u_start, ts, data, weights, s2, cov, key, summaries
     # Ctrl-C, is reported once the chains already running have ended.
     common = jax.tree.map(
         lambda x: jnp.asarray(x) if isinstance(x, (np.ndarray, np.generic)) else x,
-        (sampled, w, jnp.asarray(index), _to_sampling(problem, sampled, u_start),
-         jnp.asarray(free), ts, data, weights, s2, inverse_mass))
+        (sampled, w, index, _to_sampling(problem, sampled, u_start), free, ts, data, weights,
+         s2, inverse_mass))
     keys = jax.random.split(k_chains, chains)
     static = dict(draws=per_chain, warmup=warmup)  # (the compiled program ignores their values)
     if jax.config.jax_disable_jit:  # (no compiled program: each chain run as Python)
