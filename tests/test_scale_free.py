@@ -241,6 +241,19 @@ def test_cli_rod_at_1e_12_reports_and_agrees():
     assert "warning" not in p.stderr
 
 
+def test_cli_rod_that_has_not_landed_by_t1_says_so():
+    # A rod 1000 m long lands after the scene's t1 = 10 s: the run has no impact to print
+    # beside the reference's, and says so on stderr instead of printing None beside it.
+    p = run_cli("run", "falling-rod", "--set", "length=1000", "--json")
+    assert p.returncode == 0, p.stderr
+    out = json.loads(p.stdout)
+    assert out["impact_time"] is None and out["t_final"] == out["t1"] == 10
+    assert out["reference"]["impact_time"] > 10
+    assert ("impact_rate, impact_time: not reached by this run (it ended at t_final=10)"
+            in p.stderr)
+    assert p.stderr.count("\n") == 1
+
+
 def test_cli_free_body_reports_its_closed_form():
     p = run_cli("run", "torque-free", "--json", "--set", "rtol=1e-3")
     assert p.returncode == 0, p.stderr
@@ -258,3 +271,9 @@ def test_warning_names_the_value():
     lines = warn_on_disagreement({"relative_difference": {"impact_time": 3e-4,
                                                           "impact_rate": None}}, 1e-10)
     assert len(lines) == 1 and "impact_time" in lines[0] and "0.0003" in lines[0]
+    # a value with a reference but none of its own: not reached, and named with its reference
+    lines = warn_on_disagreement({"impact_time": None, "reference": {"impact_time": 21.5},
+                                  "relative_difference": {"impact_time": None}}, 1e-10, 10.0)
+    assert len(lines) == 1 and "impact_time: not reached" in lines[0] and "21.5" in lines[0]
+    assert warn_on_disagreement({"impact_time": 21.5, "reference": {"impact_time": 21.5},
+                                 "relative_difference": {"impact_time": 0.0}}, 1e-10, 30.0) == []

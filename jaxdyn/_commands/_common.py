@@ -166,10 +166,18 @@ def emit(out: dict[str, Any], as_json: bool, title: str = "") -> None:
         print(f"  {key}: {fmt(value)}")
 
 
-def warn_on_disagreement(report: dict[str, Any], rtol: float) -> list[str]:
+def _short(value) -> str:
+    return f"{value:.10g}" if isinstance(value, float) else str(value)
+
+
+def warn_on_disagreement(report: dict[str, Any], rtol: float,
+                         t_final: float | None = None) -> list[str]:
     """Warn on stderr for every value of a run's report that differs from its independent
-    reference (`report["relative_difference"]`) by more than the tolerances promise."""
+    reference (`report["relative_difference"]`) by more than the tolerances promise, and for
+    every value that has a reference but no value in this run (an impact after the run's end):
+    nothing is printed beside its reference without saying how far apart they are."""
     warnings = []
+    reference = report.get("reference") or {}
     for key, diff in (report.get("relative_difference") or {}).items():
         if diff is not None and diff > PROMISE * rtol:
             warnings.append(
@@ -178,6 +186,14 @@ def warn_on_disagreement(report: dict[str, Any], rtol: float) -> list[str]:
                 "the run may be ill-conditioned (near a separatrix, a long horizon); tighten "
                 "rtol with --set rtol=... to check"
             )
+    missing = [k for k, v in reference.items() if v is not None and report.get(k) is None]
+    if missing:
+        refs = ", ".join(f"{k}={_short(reference[k])}" for k in missing)
+        warnings.append(
+            f"jaxdyn: warning: {', '.join(missing)}: not reached by this run"
+            + (f" (it ended at t_final={t_final:.10g})" if t_final is not None else "")
+            + f", while the reference gives {refs}; a longer run (--t1) reaches it"
+        )
     for line in warnings:
         print(line, file=sys.stderr)
     return warnings

@@ -73,7 +73,7 @@ def run(args) -> int:
     traj = jax.block_until_ready(traj)
     report = traj.report()
     timing = timing_since(t0)
-    warn_on_disagreement(report, spec.rtol)
+    warn_on_disagreement(report, spec.rtol, float(traj.t_final))
     out: dict[str, Any] = {
         "scene": spec.name,
         "body": spec.scene.body.kind,
