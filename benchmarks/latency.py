@@ -15,7 +15,9 @@
   its cost estimate, also reported, is under 1000 operations); the call against jaxdyn's own
   compiled program; a derived
   output (`traj.omega`, `traj.normal_force`) against its compiled program, accessed again on
-  one trajectory and first accessed on each of many new runs of the same scene. Medians of
+  one trajectory and first accessed on each of many new runs of the same scene; the dense
+  output (`traj.evaluate` at 200 times, `traj.resample(200)`) against a hand-written
+  `jax.jit` of the same interpolation over the trajectory's arrays. Medians of
   repeats,
   taken in rounds that call each of the compared functions in turn (so that a slower phase of
   the machine weighs on all of them alike); the steps and the final states of both are
@@ -254,6 +256,22 @@ def calls(repeats):
                 times.append(time.perf_counter() - t0)
         first_us = statistics.median(first) * 1e6
         program_first_us = statistics.median(program_first) * 1e6
+        # The dense output: `traj.evaluate` at 200 times and `traj.resample(200)`, against
+        # the same computation as a hand-written `jax.jit` over the trajectory's arrays.
+        dense = jd.simulate(sc, y, t1, rtol=rtol, dense=True)
+        t_eval = np.linspace(0.0, float(dense.t_final), 200)
+        d_leaves, d_tree = jax.tree_util.tree_flatten(dense)
+
+        def hand_samples(leaves, t=None):
+            tr = jax.tree_util.tree_unflatten(d_tree, leaves)
+            if t is None:
+                t = jnp.linspace(tr.interpolation.t0, tr.t_final, 200)
+            return jax.vmap(tr.interpolation.evaluate)(t)
+
+        hand_evaluate, hand_resample = jax.jit(hand_samples), jax.jit(hand_samples)
+        ev_us, ev_hand_us, rs_us, rs_hand_us = _medians_us([
+            lambda: dense.evaluate(t_eval), lambda: hand_evaluate(d_leaves, t_eval),
+            lambda: dense.resample(200).ys, lambda: hand_resample(d_leaves)], repeats)
         final_ours = np.concatenate([np.ravel(v) for v in traj.y_final.values()])
         final_hand = np.ravel(np.asarray(sol.ys)[-1])
         out[name] = {
@@ -272,6 +290,10 @@ def calls(repeats):
             "output_over_program": out_us / out_prog_us,
             f"new_trajectory_{output}_us": first_us,
             "new_trajectory_output_over_program": first_us / program_first_us,
+            "evaluate_200_us": ev_us, "hand_jit_evaluate_us": ev_hand_us,
+            "evaluate_over_hand": ev_us / ev_hand_us,
+            "resample_200_us": rs_us, "hand_jit_resample_us": rs_hand_us,
+            "resample_over_hand": rs_us / rs_hand_us,
         }
     return out
 

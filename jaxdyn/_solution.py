@@ -2,6 +2,7 @@
 `_solution.py`), the dense output merged over the segments of a run, derived outputs, and the
 host-side report of a failure."""
 
+import dataclasses
 import weakref
 from typing import Any
 
@@ -82,16 +83,14 @@ class Trajectory(eqx.Module):
         past an event within the last step, where the step's interpolant would go on."""
         if self.interpolation is None:
             raise ParameterError("evaluate needs the dense output: simulate(..., dense=True)")
-        t = jnp.asarray(t, self.t_final.dtype)
+        dtype = self.t_final.dtype
+        # (Times given on the host stay there until the program's call takes them.)
+        t = jnp.asarray(t, dtype) if isinstance(t, jax.Array) else np.asarray(t, dtype)
         if t.ndim > 1:
             raise ParameterError(f"t has shape {t.shape}: expected a time or a 1-D array of "
                                  "times")
-        y = (jax.vmap(self.interpolation.evaluate) if t.ndim else
-             self.interpolation.evaluate)(t)
-        outside = ~((t >= self.interpolation.t0) & (t <= self.t_final))
-        return jax.tree.map(
-            lambda v: jnp.where(outside.reshape(outside.shape + (1,) * (v.ndim - t.ndim)),
-                                jnp.nan, v), y)
+        return _trajectory_program("evaluate", _evaluate_of, _evaluate_filtered, self,
+                                   dynamic=(t,))
 
     def resample(self, num: int) -> "Trajectory":
         """The same run saved at `num` evenly spaced times from its start to its end (the event
@@ -207,15 +206,28 @@ def _to_python(x):
     return [_to_python(v) for v in a]
 
 
+def _evaluate_of(traj: Trajectory, t) -> State:
+    interpolation = traj.interpolation
+    y = (jax.vmap(interpolation.evaluate) if t.ndim else interpolation.evaluate)(t)
+    outside = ~((t >= interpolation.t0) & (t <= traj.t_final))
+    return jax.tree.map(
+        lambda v: jnp.where(outside.reshape(outside.shape + (1,) * (v.ndim - t.ndim)),
+                            jnp.nan, v), y)
+
+
+_evaluate_filtered = eqx.filter_jit(_evaluate_of)
+
+
 def _resample(traj: Trajectory, num: int) -> Trajectory:
-    return _trajectory_program("resample", _resample_of, _resample_filtered, traj, num)
+    ts, ys = _trajectory_program("resample", _resample_of, _resample_filtered, traj, num)
+    return dataclasses.replace(traj, ts=ts, ys=ys)  # (a third of `eqx.tree_at`'s cost)
 
 
-def _resample_of(traj: Trajectory, num: int) -> Trajectory:
-    t0 = traj.interpolation.t0
-    ts = jnp.linspace(t0, traj.t_final, num)
-    ys = jax.vmap(traj.interpolation.evaluate)(ts)
-    return eqx.tree_at(lambda tr: (tr.ts, tr.ys), traj, (ts, ys))
+def _resample_of(traj: Trajectory, num: int):
+    """The new samples only: the rest of the trajectory (its dense table, as long as the step
+    budget) is not copied through the program's outputs."""
+    ts = jnp.linspace(traj.interpolation.t0, traj.t_final, num)
+    return ts, jax.vmap(traj.interpolation.evaluate)(ts)
 
 
 _resample_filtered = eqx.filter_jit(_resample_of)  # (`num`, a Python int, is static)
@@ -242,21 +254,21 @@ def _structure_program(name: str, treedef, options, build):
     return program
 
 
-def _trajectory_program(name: str, fn, filtered, traj: Trajectory, *static):
-    """`fn(traj, *static)` as one program per trajectory structure (and static values), called
-    with the trajectory's arrays (`filtered`, equinox's filtered `fn`, where it holds anything
-    else)."""
+def _trajectory_program(name: str, fn, filtered, traj: Trajectory, *static, dynamic=()):
+    """`fn(traj, *dynamic, *static)` as one program per trajectory structure (and static
+    values), called with the trajectory's arrays and the `dynamic` arrays (`filtered`,
+    equinox's filtered `fn`, where any of them holds anything else)."""
     leaves, treedef = jax.tree_util.tree_flatten(traj)
-    if not _concrete_arrays(*leaves):
-        return filtered(traj, *static)
-    return _trajectory_stored(name, fn, treedef, static)(leaves)
+    if not _concrete_arrays(*leaves, *dynamic):
+        return filtered(traj, *dynamic, *static)
+    return _trajectory_stored(name, fn, treedef, static)(leaves, *dynamic)
 
 
 def _trajectory_stored(name: str, fn, treedef, static) -> StoredProgram:
     """The program of `_trajectory_program` for one trajectory structure."""
     def build(treedef):
-        def program(leaves):
-            return fn(jax.tree_util.tree_unflatten(treedef, leaves), *static)
+        def program(leaves, *dynamic):
+            return fn(jax.tree_util.tree_unflatten(treedef, leaves), *dynamic, *static)
 
         program.__name__ = program.__qualname__ = name
         return program
@@ -283,7 +295,8 @@ def prepare_report(traj: Trajectory, num: int | None = None) -> None:
     leaves, treedef = jax.tree_util.tree_flatten(traj)
     if _shapes_and_arrays(leaves) and traj.interpolation is not None:
         _trajectory_stored("resample", _resample_of, treedef, (num,)).prepare(
-            leaves, then=summary)
+            leaves, then=lambda samples: summary(
+                dataclasses.replace(traj, ts=samples[0], ys=samples[1])))
 
 
 def _shapes_and_arrays(leaves) -> bool:

@@ -620,3 +620,38 @@ def test_a_solver_without_an_error_estimate_takes_fixed_steps():
                     stepsize_controller=dfx.PIDController(rtol=1e-6, atol=1e-9))
     with pytest.raises(jd.ParameterError, match="RK4 takes fixed steps: give dt0"):
         jd.simulate(scene, y0, 20.0, solver=jd.RK4())
+
+
+def test_dense_output_calls_trace_once_per_structure_and_shape():
+    # `traj.evaluate` and `traj.resample` are one compiled program per trajectory structure and
+    # shape of times: after the first call, a new run of the same scene (other values) traces
+    # and compiles nothing, and the programs give what the same functions give traced.
+    scene = jd.Scene(jd.RigidBody(inertia=[1.0, 2.0, 3.0]))
+    first = jd.simulate(scene, scene.state(omega=[0.3, 1.0, 0.2]), 4.0, dense=True)
+    times = np.linspace(0.0, 4.0, 7)
+    for t in (1.5, times):
+        first.evaluate(t)
+    first.resample(9)
+    traces = []
+
+    def listener(name, *args, **kwargs):
+        if name in ("/jax/core/compile/jaxpr_trace_duration",
+                    "/jax/core/compile/jaxpr_to_mlir_module_duration"):
+            traces.append(name)
+
+    again = jd.simulate(scene, scene.state(omega=[0.1, 2.0, -0.4]), 4.0, dense=True)
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        at_one, at_times = again.evaluate(1.5), again.evaluate(times)
+        resampled = again.resample(9)
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
+    assert traces == []
+    traced = jax.jit(lambda tr: (tr.evaluate(1.5), tr.evaluate(times), tr.resample(9).ys))
+    ref_one, ref_times, ref_resampled = traced(again)
+    np.testing.assert_allclose(at_one["omega"], ref_one["omega"], rtol=1e-14, atol=1e-15)
+    np.testing.assert_allclose(at_times["omega"], ref_times["omega"], rtol=1e-14, atol=1e-15)
+    np.testing.assert_allclose(resampled.ys["omega"], ref_resampled["omega"], rtol=1e-14,
+                               atol=1e-15)
+    np.testing.assert_allclose(resampled.ts, np.linspace(0.0, 4.0, 9), rtol=1e-15)
+    assert np.all(np.isnan(again.evaluate(np.array([-1.0, 5.0]))["omega"]))  # outside the run
