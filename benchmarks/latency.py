@@ -17,7 +17,8 @@
   output (`traj.omega`, `traj.normal_force`) against its compiled program, accessed again on
   one trajectory and first accessed on each of many new runs of the same scene; the dense
   output (`traj.evaluate` at 200 times, `traj.resample(200)`) against a hand-written
-  `jax.jit` of the same interpolation over the trajectory's arrays. Medians of
+  `jax.jit` of the same interpolation over the trajectory's arrays; `jd.torque_free_omega`
+  (NumPy inputs, 200 times) against its compiled program. Medians of
   repeats,
   taken in rounds that call each of the compared functions in turn (so that a slower phase of
   the machine weighs on all of them alike); the steps and the final states of both are
@@ -295,6 +296,17 @@ def calls(repeats):
             "resample_200_us": rs_us, "hand_jit_resample_us": rs_hand_us,
             "resample_over_hand": rs_us / rs_hand_us,
         }
+    # The closed form of the free body's rates (`jd.torque_free_omega`, inputs given as NumPy
+    # arrays, as from a notebook) at 200 times, against its own compiled program called with
+    # JAX arrays (no checks, no conversions).
+    from jaxdyn._free_body import _torque_free_omega
+
+    host = (np.array([1.0, 2.0, 3.0]), np.array([0.3, 1.0, 0.2]), np.linspace(0.0, 20.0, 200))
+    device = tuple(jnp.asarray(a) for a in host)
+    closed_us, closed_program_us = _medians_us([lambda: jd.torque_free_omega(*host),
+                                                lambda: _torque_free_omega(*device)], repeats)
+    out["torque_free_omega"] = {"call_us": closed_us, "program_us": closed_program_us,
+                                "call_over_program": closed_us / closed_program_us}
     return out
 
 

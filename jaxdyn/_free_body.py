@@ -172,18 +172,19 @@ def _equilibrium(moments, omega, t):
 def _check(inertia, omega0, t=None):
     """Eager checks of the closed-form functions' inputs (skipped for traced values)."""
     from ._inertia import moments_checks
-    from ._validation import ParameterError, as_float_array, raise_if_violated
+    from ._validation import ParameterError, as_float_array, finite_check, raise_if_violated
 
-    inertia = as_float_array("inertia", inertia)
+    # (Values given on the host stay there: the compiled program's call transfers them.)
+    inertia = as_float_array("inertia", inertia, host=True)
     if inertia.shape != (3,):
         raise ParameterError(f"inertia has shape {inertia.shape}: expected 3 principal moments")
     raise_if_violated(moments_checks("inertia", inertia))
-    omega0 = as_float_array("omega0", omega0, (3,), inertia.dtype)
-    raise_if_violated([("omega0", omega0, ~jnp.isfinite(omega0), "must be finite")])
+    omega0 = as_float_array("omega0", omega0, (3,), inertia.dtype, host=True)
+    raise_if_violated([finite_check("omega0", omega0)])  # (NumPy on the host: no program)
     if t is None:
         return inertia, omega0
-    t = as_float_array("t", t, None, inertia.dtype)
-    raise_if_violated([("t", t, ~jnp.isfinite(t), "must be finite")])
+    t = as_float_array("t", t, None, inertia.dtype, host=True)
+    raise_if_violated([finite_check("t", t)])
     return inertia, omega0, t
 
 

@@ -290,16 +290,13 @@ def _general(moments, omega, perm, parity, q0, t):
 
 def _check_attitude(inertia, omega0, quaternion0, t):
     """`_free_body._check`, and the quaternion: 4 finite numbers, not all zero."""
-    from ._validation import as_float_array, raise_if_violated
+    from ._validation import as_float_array, finite_check, on_host, raise_if_violated
 
     inertia, omega0, t = _check(inertia, omega0, t)
-    quaternion0 = as_float_array("quaternion0", quaternion0, (4,), inertia.dtype)
-    raise_if_violated(
-        [
-            ("quaternion0", quaternion0, ~jnp.isfinite(quaternion0), "must be finite"),
-            ("quaternion0", quaternion0, jnp.all(quaternion0 == 0), "must be nonzero"),
-        ]
-    )
+    quaternion0 = as_float_array("quaternion0", quaternion0, (4,), inertia.dtype, host=True)
+    xp, q = on_host(quaternion0)
+    raise_if_violated([finite_check("quaternion0", quaternion0),
+                       ("quaternion0", quaternion0, xp.all(q == 0), "must be nonzero")])
     return inertia, omega0, quaternion0, t
 
 

@@ -33,8 +33,12 @@ def raise_if_violated(checks: Iterable[Check]) -> None:
             raise ParameterError(message(field, value, allowed))
 
 
-def as_float_array(field: str, value, shape: tuple[int, ...] | None = None, dtype=None):
-    """Convert `value` to a floating array, with a clear error for wrong types and shapes."""
+def as_float_array(field: str, value, shape: tuple[int, ...] | None = None, dtype=None,
+                   host: bool = False):
+    """Convert `value` to a floating array, with a clear error for wrong types and shapes.
+    `host=True`: a value not already a JAX array stays a NumPy array on the host (for a
+    caller that passes it straight to a compiled program, whose call puts it on the device
+    at a fraction of the cost of `jnp.asarray`)."""
     if isinstance(value, str | bytes) or value is None:
         raise ParameterError(message(field, value, "expected a number or an array of numbers"))
     if isinstance(value, jax.Array):
@@ -48,10 +52,11 @@ def as_float_array(field: str, value, shape: tuple[int, ...] | None = None, dtyp
             raise ParameterError(message(field, value, "expected a number or an array")) from e
         if np_value.dtype.kind not in "biuf":
             raise ParameterError(message(field, value, "expected real numbers"))
+        xp = np if host else jnp
         if np_value.dtype.kind == "f" and dtype is None and np_value.dtype != np.float64:
-            arr = jnp.asarray(np_value)  # keep float32/float16 as given
+            arr = xp.asarray(np_value)  # keep float32/float16 as given
         else:
-            arr = jnp.asarray(np_value, dtype=dtype or jnp.result_type(float))
+            arr = xp.asarray(np_value, dtype=dtype or jnp.result_type(float))
     if dtype is not None and arr.dtype != dtype:
         arr = arr.astype(dtype)
     if shape is not None and arr.shape != shape:
