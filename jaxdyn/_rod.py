@@ -238,15 +238,17 @@ class FallingRod(AbstractBody):
         n_over_w = self.outputs(ts, ys, (), False)["normal_force_over_weight"]
         theta0, theta_dot0 = ys["theta"][0], ys["theta_dot"][0]
         nan = jnp.asarray(jnp.nan, t_final.dtype)
+        fall = self._fall_time(theta0, theta_dot0)
         return {
             "impact_time": jnp.where(flat, t_final, nan),
             "impact_rate": jnp.where(flat, y_final["theta_dot"], nan),
             "min_normal_force_over_weight": jnp.min(jnp.where(valid, n_over_w, jnp.inf)),
             "reference": {
-                "impact_time": self._fall_time(theta0, theta_dot0),
-                "impact_rate": jnp.sign(y_final["theta"]) * self._rate(
-                    jnp.pi / 2, theta0, theta_dot0
-                ),
+                "impact_time": fall,
+                # (none where the rod never lands: upright at rest, it stays there)
+                "impact_rate": jnp.where(
+                    jnp.isfinite(fall),
+                    jnp.sign(y_final["theta"]) * self._rate(jnp.pi / 2, theta0, theta_dot0), nan),
             },
         }
 

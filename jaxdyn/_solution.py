@@ -17,7 +17,7 @@ from ._custom_types import State
 from ._outcome import NAMES, Outcome, SimulationError
 from ._programs import StoredProgram
 from ._scene import Scene
-from ._validation import ParameterError
+from ._validation import ParameterError, as_float_array, is_concrete
 
 
 class MergedInterpolation(eqx.Module):
@@ -84,8 +84,10 @@ class Trajectory(eqx.Module):
         if self.interpolation is None:
             raise ParameterError("evaluate needs the dense output: simulate(..., dense=True)")
         dtype = self.t_final.dtype
-        # (Times given on the host stay there until the program's call takes them.)
-        t = jnp.asarray(t, dtype) if isinstance(t, jax.Array) else np.asarray(t, dtype)
+        if is_concrete(t):  # (times given on the host stay there, copied, until the call)
+            t = as_float_array("t", t, None, dtype, host=True)
+        else:  # traced, or a list holding traced values
+            t = jnp.asarray(t, dtype)
         if t.ndim > 1:
             raise ParameterError(f"t has shape {t.shape}: expected a time or a 1-D array of "
                                  "times")

@@ -36,9 +36,11 @@ def raise_if_violated(checks: Iterable[Check]) -> None:
 def as_float_array(field: str, value, shape: tuple[int, ...] | None = None, dtype=None,
                    host: bool = False):
     """Convert `value` to a floating array, with a clear error for wrong types and shapes.
-    `host=True`: a value not already a JAX array stays a NumPy array on the host (for a
-    caller that passes it straight to a compiled program, whose call puts it on the device
-    at a fraction of the cost of `jnp.asarray`)."""
+    `host=True`: a value not already a JAX array becomes a NumPy array on the host, always a
+    copy (for a caller that passes it straight to a compiled program, whose call puts it on
+    the device at a fraction of the cost of `jnp.asarray`; on a CPU that call may share the
+    array's memory while the program runs asynchronously, so the caller's own array, which
+    it may change after the call returns, is never the one passed)."""
     if isinstance(value, str | bytes) or value is None:
         raise ParameterError(message(field, value, "expected a number or an array of numbers"))
     if isinstance(value, jax.Array):
@@ -52,11 +54,11 @@ def as_float_array(field: str, value, shape: tuple[int, ...] | None = None, dtyp
             raise ParameterError(message(field, value, "expected a number or an array")) from e
         if np_value.dtype.kind not in "biuf":
             raise ParameterError(message(field, value, "expected real numbers"))
-        xp = np if host else jnp
+        convert = np.array if host else jnp.asarray  # (`np.array` copies)
         if np_value.dtype.kind == "f" and dtype is None and np_value.dtype != np.float64:
-            arr = xp.asarray(np_value)  # keep float32/float16 as given
+            arr = convert(np_value)  # keep float32/float16 as given
         else:
-            arr = xp.asarray(np_value, dtype=dtype or jnp.result_type(float))
+            arr = convert(np_value, dtype=dtype or jnp.result_type(float))
     if dtype is not None and arr.dtype != dtype:
         arr = arr.astype(dtype)
     if shape is not None and arr.shape != shape:

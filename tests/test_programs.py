@@ -655,3 +655,17 @@ def test_dense_output_calls_trace_once_per_structure_and_shape():
                                atol=1e-15)
     np.testing.assert_allclose(resampled.ts, np.linspace(0.0, 4.0, 9), rtol=1e-15)
     assert np.all(np.isnan(again.evaluate(np.array([-1.0, 5.0]))["omega"]))  # outside the run
+    assert any(key[0] == "evaluate" for key in _solution._PROGRAMS)  # one program, not eager
+    # The caller's array is copied: changed right after the call, the result is unchanged.
+    many = np.linspace(0.0, 4.0, 200_000)
+    result = again.evaluate(many)
+    many[:] = -1.0
+    np.testing.assert_array_equal(result["omega"],
+                                  again.evaluate(np.linspace(0.0, 4.0, 200_000))["omega"])
+    # Times in a list that holds traced values (under `grad`): traced, as before.
+    slope = jax.grad(lambda s: again.evaluate([s, 0.1])["omega"][0, 1])(1.5)
+    np.testing.assert_allclose(slope, again.evaluate(1.5)["omega"][2] * (3.0 - 1.0) / 2.0
+                               * again.evaluate(1.5)["omega"][0], rtol=1e-6)
+    for bad in (None, [0.5, None], "1.0"):
+        with pytest.raises(jd.ParameterError, match="t"):
+            again.evaluate(bad)

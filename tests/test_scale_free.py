@@ -254,6 +254,18 @@ def test_cli_rod_that_has_not_landed_by_t1_says_so():
     assert p.stderr.count("\n") == 1
 
 
+def test_a_rod_that_never_falls_has_no_reference_to_miss():
+    # Upright at rest the rod stays there: no impact, and no reference impact (time or rate)
+    # for the command to call "not reached".
+    rod = jd.Scene(jd.FallingRod())
+    report = jd.simulate(rod, rod.state(theta=0.0), 2.0).report()
+    assert report["impact_time"] is None and report["reference"] == {
+        "impact_time": None, "impact_rate": None}
+    from jaxdyn._commands._common import warn_on_disagreement
+
+    assert warn_on_disagreement(report, 1e-10, 2.0) == []
+
+
 def test_cli_free_body_reports_its_closed_form():
     p = run_cli("run", "torque-free", "--json", "--set", "rtol=1e-3")
     assert p.returncode == 0, p.stderr

@@ -186,13 +186,15 @@ def warn_on_disagreement(report: dict[str, Any], rtol: float,
                 "the run may be ill-conditioned (near a separatrix, a long horizon); tighten "
                 "rtol with --set rtol=... to check"
             )
-    missing = [k for k, v in reference.items() if v is not None and report.get(k) is None]
+    missing = [k for k, v in reference.items() if v is not None and k in report
+               and report[k] is None]
     if missing:
         refs = ", ".join(f"{k}={_short(reference[k])}" for k in missing)
         warnings.append(
             f"jaxdyn: warning: {', '.join(missing)}: not reached by this run"
             + (f" (it ended at t_final={t_final:.10g})" if t_final is not None else "")
-            + f", while the reference gives {refs}; a longer run (--t1) reaches it"
+            + f", while the reference gives {refs} (a reference time after the run's end: a "
+            "longer run, --t1, reaches it)"
         )
     for line in warnings:
         print(line, file=sys.stderr)
