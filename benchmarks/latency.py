@@ -269,10 +269,10 @@ def calls(repeats):
                 t = jnp.linspace(tr.interpolation.t0, tr.t_final, 200)
             return jax.vmap(tr.interpolation.evaluate)(t)
 
-        hand_evaluate, hand_resample = jax.jit(hand_samples), jax.jit(hand_samples)
+        hand = jax.jit(hand_samples)  # (one program for each: with and without `t`)
         ev_us, ev_hand_us, rs_us, rs_hand_us = _medians_us([
-            lambda: dense.evaluate(t_eval), lambda: hand_evaluate(d_leaves, t_eval),
-            lambda: dense.resample(200).ys, lambda: hand_resample(d_leaves)], repeats)
+            lambda: dense.evaluate(t_eval), lambda: hand(d_leaves, t_eval),
+            lambda: dense.resample(200).ys, lambda: hand(d_leaves)], repeats)
         final_ours = np.concatenate([np.ravel(v) for v in traj.y_final.values()])
         final_hand = np.ravel(np.asarray(sol.ys)[-1])
         out[name] = {

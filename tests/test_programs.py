@@ -664,8 +664,8 @@ def test_dense_output_calls_trace_once_per_structure_and_shape():
                                   again.evaluate(np.linspace(0.0, 4.0, 200_000))["omega"])
     # Times in a list that holds traced values (under `grad`): traced, as before.
     slope = jax.grad(lambda s: again.evaluate([s, 0.1])["omega"][0, 1])(1.5)
-    np.testing.assert_allclose(slope, again.evaluate(1.5)["omega"][2] * (3.0 - 1.0) / 2.0
-                               * again.evaluate(1.5)["omega"][0], rtol=1e-6)
+    np.testing.assert_allclose(slope, at_one["omega"][2] * (3.0 - 1.0) / 2.0
+                               * at_one["omega"][0], rtol=1e-6)
     for bad in (None, [0.5, None], "1.0"):
         with pytest.raises(jd.ParameterError, match="t"):
             again.evaluate(bad)

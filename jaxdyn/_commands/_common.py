@@ -166,10 +166,6 @@ def emit(out: dict[str, Any], as_json: bool, title: str = "") -> None:
         print(f"  {key}: {fmt(value)}")
 
 
-def _short(value) -> str:
-    return f"{value:.10g}" if isinstance(value, float) else str(value)
-
-
 def warn_on_disagreement(report: dict[str, Any], rtol: float,
                          t_final: float | None = None) -> list[str]:
     """Warn on stderr for every value of a run's report that differs from its independent
@@ -189,10 +185,10 @@ def warn_on_disagreement(report: dict[str, Any], rtol: float,
     missing = [k for k, v in reference.items() if v is not None and k in report
                and report[k] is None]
     if missing:
-        refs = ", ".join(f"{k}={_short(reference[k])}" for k in missing)
+        refs = fmt({k: reference[k] for k in missing})
         warnings.append(
             f"jaxdyn: warning: {', '.join(missing)}: not reached by this run"
-            + (f" (it ended at t_final={t_final:.10g})" if t_final is not None else "")
+            + (f" (it ended at t_final={fmt(t_final)})" if t_final is not None else "")
             + f", while the reference gives {refs} (a reference time after the run's end: a "
             "longer run, --t1, reaches it)"
         )
