@@ -1,6 +1,7 @@
 """Tolerances and comparison helpers, in one place for the whole test suite."""
 
 import contextlib
+import os
 
 import jax
 import jax.numpy as jnp
@@ -15,6 +16,15 @@ INTEGRATION = {jnp.dtype("float64"): 1e-9, jnp.dtype("float32"): 1e-4}
 
 # Relative tolerance for gradients checked against central finite differences.
 FINITE_DIFF = {jnp.dtype("float64"): 1e-6, jnp.dtype("float32"): 1e-2}
+
+
+def host_devices_env(count: int) -> dict:
+    """The environment of a child process that sees `count` host devices: the suite's own
+    `XLA_FLAGS` (the faster-compiling emitters, `tests/conftest.py`, which also key the shared
+    compilation cache) with the device count added, not replaced."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    return {**os.environ,
+            "XLA_FLAGS": f"{flags} --xla_force_host_platform_device_count={count}".strip()}
 
 
 def tol(table, dtype=jnp.float64):

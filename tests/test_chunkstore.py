@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import host_devices_env
 
 import jaxdyn as jd
 from jaxdyn._chunkstore import _HOST, ChunkStore
@@ -97,7 +98,7 @@ def test_foreign_chunk_files_are_reported_and_recomputed(tmp_path):
 
 
 def test_the_fingerprint_covers_the_devices(tmp_path):
-    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
+    env = host_devices_env(2)
     out = str(tmp_path / "run")
     two = subprocess.run([sys.executable, str(WORKER), "adaptive", "--devices", "2", "--out",
                           out], capture_output=True, text=True, env=env)

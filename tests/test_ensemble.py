@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.special
-from helpers import INTEGRATION, tol
+from helpers import INTEGRATION, host_devices_env, tol
 
 import jaxdyn as jd
 
@@ -359,7 +359,7 @@ def test_sharded_across_devices_equals_one_device(mode, chunk):
     chunks): one program per device, each device going on to its next chunk; in one chunk of
     100: one program over the four devices (compiled once). Lock-step: one program over the
     devices, whose step sizes are reduced across them."""
-    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=4"}
+    env = host_devices_env(4)
     sharded = _worker(mode, "--chunk", chunk, env=env)
     single = _worker(mode, "--devices", "1", "--chunk", chunk, env=env)
     assert sharded["local_devices"] == 4 and sharded["devices"] == 4 and single["devices"] == 1

@@ -2,7 +2,6 @@
 program instead of tracing it, gets the same numbers, and nothing is stored that could be
 stale (a structure naming code outside jaxdyn and its libraries)."""
 
-import os
 import subprocess
 import sys
 import uuid
@@ -10,6 +9,7 @@ import uuid
 import jax
 import numpy as np
 import pytest
+from helpers import host_devices_env
 
 import jaxdyn as jd
 from jaxdyn import _programs, _simulate, _solution
@@ -214,7 +214,7 @@ def test_stored_programs_run_on_a_machine_with_several_devices(tmp_path):
         "a, b = jd.simulate(sc, sc.state(theta=0.1), 10.0), jd.simulate(sc, y, 10.0)\n"
         "print(len(jax.devices()), repr(float(a.t_final)), repr(float(b.t_final)))\n"
     )
-    env = {**os.environ, "XLA_FLAGS": "--xla_force_host_platform_device_count=2"}
+    env = host_devices_env(2)
     outs = []
     for _ in range(2):  # compiled and stored, then loaded
         proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
