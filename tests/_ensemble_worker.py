@@ -6,6 +6,10 @@ several processes joined by `jax.distributed`.
 
     python tests/_ensemble_worker.py MODE [--devices K] [--chunk C] [--out DIR]
                                           [--process I --processes P --port PORT]
+                                          [--then-devices K2]
+
+With `--then-devices`, the same ensemble is run again on K2 devices in the same process (one
+start and one import for both) and a JSON list of the two results is printed.
 """
 
 import argparse
@@ -23,29 +27,38 @@ def main():
     parser.add_argument("--processes", type=int, default=None)
     parser.add_argument("--port", type=int, default=None)
     parser.add_argument("--chunk", type=int, default=32)
+    parser.add_argument("--then-devices", type=int, default=None)
     args = parser.parse_args()
     if args.process is not None:
         jax.distributed.initialize(coordinator_address=f"127.0.0.1:{args.port}",
                                    num_processes=args.processes, process_id=args.process)
     jax.config.update("jax_enable_x64", True)
     import jaxdyn as jd
-
-    scene = jd.Scene(jd.RigidBody(inertia=[1.0, 2.0, 2.5]))
-    devices = None if args.devices is None else jax.local_devices()[: args.devices]
-    res = jd.ensemble(scene, scene.state(omega=[0.1, 1.0, 0.1]), 5.0, n=100, key=3,
-                      vary={"omega": jd.Normal([0.1, 1.0, 0.1], 0.05),
-                            "inertia[0]": jd.Uniform(0.9, 1.1)},
-                      mode=args.mode, chunk_size=args.chunk, devices=devices, out=args.out)
     from jaxdyn import _ensemble
 
-    # How each chunk program was compiled: one per device, or one over every device.
-    programs = sorted("per_device" if where == "per_device" else "one"
-                      for _, where in _ensemble._COMPILED.values())
-    print(json.dumps({"devices": res.devices, "process_count": jax.process_count(),
-                      "programs": programs,
-                      "local_devices": len(jax.local_devices()),
-                      "omega": res.values["omega"].tolist(),
-                      "status": res.status.tolist(), "steps": res.steps.tolist()}))
+    scene = jd.Scene(jd.RigidBody(inertia=[1.0, 2.0, 2.5]))
+
+    def run(count):
+        before = set(_ensemble._COMPILED)
+        devices = None if count is None else jax.local_devices()[:count]
+        res = jd.ensemble(scene, scene.state(omega=[0.1, 1.0, 0.1]), 5.0, n=100, key=3,
+                          vary={"omega": jd.Normal([0.1, 1.0, 0.1], 0.05),
+                                "inertia[0]": jd.Uniform(0.9, 1.1)},
+                          mode=args.mode, chunk_size=args.chunk, devices=devices, out=args.out)
+        # How each chunk program this run compiled was compiled: one per device, or one over
+        # every device.
+        programs = sorted("per_device" if where == "per_device" else "one"
+                          for key, (_, where) in _ensemble._COMPILED.items()
+                          if key not in before)
+        return {"devices": res.devices, "process_count": jax.process_count(),
+                "programs": programs, "local_devices": len(jax.local_devices()),
+                "omega": res.values["omega"].tolist(),
+                "status": res.status.tolist(), "steps": res.steps.tolist()}
+
+    result = run(args.devices)
+    if args.then_devices is not None:
+        result = [result, run(args.then_devices)]
+    print(json.dumps(result))
 
 
 if __name__ == "__main__":

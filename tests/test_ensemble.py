@@ -360,8 +360,7 @@ def test_sharded_across_devices_equals_one_device(mode, chunk):
     100: one program over the four devices (compiled once). Lock-step: one program over the
     devices, whose step sizes are reduced across them."""
     env = host_devices_env(4)
-    sharded = _worker(mode, "--chunk", chunk, env=env)
-    single = _worker(mode, "--devices", "1", "--chunk", chunk, env=env)
+    sharded, single = _worker(mode, "--chunk", chunk, "--then-devices", "1", env=env)
     assert sharded["local_devices"] == 4 and sharded["devices"] == 4 and single["devices"] == 1
     assert sharded["programs"] == (["per_device"] if chunk == "32" and mode == "adaptive"
                                    else ["one"])
