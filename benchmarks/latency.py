@@ -18,7 +18,8 @@
   one trajectory and first accessed on each of many new runs of the same scene; the dense
   output (`traj.evaluate` at 200 times, `traj.resample(200)`) against a hand-written
   `jax.jit` of the same interpolation over the trajectory's arrays; `jd.torque_free_omega`
-  (NumPy inputs, 200 times) against its compiled program. Medians of
+  and `jd.torque_free_attitude` (NumPy inputs, 200 times) against their compiled programs
+  (and the attitude program's compile time). Medians of
   repeats,
   taken in rounds that call each of the compared functions in turn (so that a slower phase of
   the machine weighs on all of them alike); the steps and the final states of both are
@@ -307,6 +308,23 @@ def calls(repeats):
                                                 lambda: _torque_free_omega(*device)], repeats)
     out["torque_free_omega"] = {"call_us": closed_us, "program_us": closed_program_us,
                                 "call_over_program": closed_us / closed_program_us}
+    # The closed-form attitude (`jd.torque_free_attitude`) likewise, and its program's compile
+    # time (a fresh `jax.jit` of the same function: no persistent cache in this process).
+    from jaxdyn._free_body_attitude import _torque_free_attitude
+
+    q0 = np.array([1.0, 0.2, -0.1, 0.3])
+    host = (*host[:2], q0, host[2])
+    device = tuple(jnp.asarray(a) for a in host)
+    fresh = jax.jit(_torque_free_attitude.__wrapped__)
+    start = time.perf_counter()
+    fresh.lower(*device).compile()
+    compile_s = time.perf_counter() - start
+    attitude_us, attitude_program_us = _medians_us(
+        [lambda: jd.torque_free_attitude(*host), lambda: _torque_free_attitude(*device)],
+        repeats)
+    out["torque_free_attitude"] = {"call_us": attitude_us, "program_us": attitude_program_us,
+                                   "call_over_program": attitude_us / attitude_program_us,
+                                   "compile_s": compile_s}
     return out
 
 

@@ -115,25 +115,48 @@ def _axisymmetric(inertia, omega, q0, t):
     return quat_multiply(quat_multiply(q0, precession), spin)
 
 
-def _equilibrium(inertia, omega, q0, t):
+def _equilibrium(inertia, omega, q0, t, active):
     """A spin about a principal axis (or rest): `q0 ⊗ exp(w t / 2)` in value. Derivatives with
     respect to `omega` come from the linearised flow of `(dw, dtheta)`,
     `dw' = J dw`, `dtheta' = dw - w x dtheta`, with `q = q_spin ⊗ (1, dtheta / 2)`."""
-    dtype = inertia.dtype
+    w_bar = jax.lax.stop_gradient(omega)
+    flat = t.reshape(-1)
+    spin = _expq(w_bar * flat[:, None])
+    dtheta = _spin_perturbation(inertia, omega, flat, active)  # zero, carries the tangent
+    perturbation = jnp.concatenate([jnp.ones_like(flat)[:, None], 0.5 * dtheta], axis=-1)
+    q = quat_multiply(quat_multiply(q0, spin), perturbation)
+    return q.reshape(t.shape + (4,))
+
+
+@jax.custom_jvp
+def _spin_perturbation(inertia, omega, t, active):
+    """`dtheta(t) = X(t) (omega - stop_gradient(omega))`, zero in value, with `X(t)` the lower
+    left block of the linearised flow `expm(A t)`, `A = [[J, 0], [1, -skew(w)]]`. The flow
+    is computed only where a derivative is taken (the JVP rule): a value alone, as any
+    evaluation of the general case (which runs this branch too, for the `where`), costs no
+    matrix exponential, and so does a derivative where the branch is not `active` (its
+    tangent is then zero). Tangents of `inertia` and `t` multiply the zero `omega - w` and
+    give nothing; the rule itself is differentiable in both, as the product was."""
+    return jnp.zeros(t.shape + (3,), omega.dtype)
+
+
+@_spin_perturbation.defjvp
+def _spin_perturbation_jvp(primals, tangents):
+    inertia, omega, t, active = primals
+    d_omega = tangents[1]
+    dtype = omega.dtype
     w_bar = jax.lax.stop_gradient(omega)
     jac = euler_jacobian(inertia, w_bar)
     zero = jnp.zeros((3, 3), dtype)
     flow_matrix = jnp.block([[jac, zero], [jnp.eye(3, dtype=dtype), -skew(w_bar)]])
-    flat = t.reshape(-1)
     # (expm's default of at most 16 squarings gives NaN past |A t| = 5.4 * 2^16, about 1e5 s
-    # of a spin at 1 rad/s, and the NaN reached the value through `flow @ delta`.)
-    flow = jax.vmap(lambda tt: jax.scipy.linalg.expm(flow_matrix * tt, max_squarings=64))(flat)
-    delta = omega - w_bar  # zero in value, carries the tangent
-    dtheta = flow[:, 3:, :3] @ delta
-    spin = _expq(w_bar * flat[:, None])
-    perturbation = jnp.concatenate([jnp.ones_like(flat)[:, None], 0.5 * dtheta], axis=-1)
-    q = quat_multiply(quat_multiply(q0, spin), perturbation)
-    return q.reshape(t.shape + (4,))
+    # of a spin at 1 rad/s; the NaN once reached the value too, through `flow @ delta`.)
+    flow = jax.lax.cond(
+        active,
+        lambda: jax.vmap(lambda tt: jax.scipy.linalg.expm(flow_matrix * tt,
+                                                          max_squarings=64)[3:, :3])(t),
+        lambda: jnp.zeros(t.shape + (3, 3), dtype))
+    return jnp.zeros(t.shape + (3,), dtype), flow @ d_omega
 
 
 def _phase_arguments(c0, s0, m, m1, separatrix):
@@ -354,7 +377,7 @@ def _torque_free_attitude(inertia, omega0, quaternion0, t):
     general = _general(
         *_safe_general(moments, omega, equilibrium | axisymmetric), perm, parity, q0, t
     )
-    spin = _equilibrium(inertia, jnp.where(equilibrium, omega0, 0.0), q0, t)
+    spin = _equilibrium(inertia, jnp.where(equilibrium, omega0, 0.0), q0, t, equilibrium)
     symmetric = _axisymmetric(inertia, omega0, q0, t)
     q = jnp.where(axisymmetric, symmetric, jnp.where(equilibrium, spin, general))
     return q / jnp.sqrt(jnp.sum(q * q, axis=-1, keepdims=True))
