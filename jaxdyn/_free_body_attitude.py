@@ -136,7 +136,8 @@ def _spin_perturbation(inertia, omega, t, active):
     evaluation of the general case (which runs this branch too, for the `where`), costs no
     matrix exponential, and so does a derivative where the branch is not `active` (its
     tangent is then zero). Tangents of `inertia` and `t` multiply the zero `omega - w` and
-    give nothing; the rule itself is differentiable in both, as the product was."""
+    give nothing; the rule computes the product itself as its primal, so that derivatives of
+    any order are those of the product."""
     return jnp.zeros(t.shape + (3,), omega.dtype)
 
 
@@ -156,7 +157,9 @@ def _spin_perturbation_jvp(primals, tangents):
         lambda: jax.vmap(lambda tt: jax.scipy.linalg.expm(flow_matrix * tt,
                                                           max_squarings=64)[3:, :3])(t),
         lambda: jnp.zeros(t.shape + (3, 3), dtype))
-    return jnp.zeros(t.shape + (3,), dtype), flow @ d_omega
+    # The primal as the product itself (zero in value): where this rule is differentiated
+    # again (a Hessian), the derivative of its primal is the flow, as for the product.
+    return flow @ (omega - w_bar), flow @ d_omega
 
 
 def _phase_arguments(c0, s0, m, m1, separatrix):

@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import FINITE_DIFF, INTEGRATION, ROUNDOFF, central_difference, tol
+from helpers import FINITE_DIFF, INTEGRATION, ROUNDOFF, central_difference, tol, tree_allclose
 from scipy.integrate import solve_ivp
 from scipy.spatial.transform import Rotation
 
@@ -307,3 +307,65 @@ def test_spin_and_rest_over_long_times(inertia, omega0):
     jac = np.asarray(jax.jacfwd(lambda w: jd.torque_free_attitude(inertia, w, Q0, ts[:3]))(
         jnp.asarray(omega0, float)))
     assert np.all(np.isfinite(jac))
+
+
+
+def test_the_spin_branch_differentiates_as_the_linearised_flow_at_every_order():
+    # At a spin about a principal axis the derivative with respect to the rates comes from
+    # the linearised flow X(t) (lower left block of expm(A t), A = [[J, 0], [1, -skew(w)]])
+    # times `omega - stop_gradient(omega)`, zero in value. The flow is now computed only where
+    # a derivative is taken (a custom JVP rule): first and second derivatives, forward and
+    # reverse, must be those of that product written out, and the mixed derivative by the
+    # moments that of central differences of the first.
+    from jaxdyn._free_body import euler_jacobian
+    from jaxdyn._free_body_attitude import _spin_perturbation
+    from jaxdyn._rotations import skew
+
+    t = jnp.array([0.0, 0.8, 2.5])
+
+    def product(inertia, omega):
+        w_bar = jax.lax.stop_gradient(omega)
+        a = jnp.block([[euler_jacobian(inertia, w_bar), jnp.zeros((3, 3))],
+                       [jnp.eye(3), -skew(w_bar)]])
+        flow = jax.vmap(lambda tt: jax.scipy.linalg.expm(a * tt))(t)[:, 3:, :3]
+        return flow @ (omega - w_bar)
+
+    weights = jnp.asarray(np.arange(1.0, 10.0).reshape(3, 3))
+    def ours(i, w):
+        return _spin_perturbation(i, w, t, jnp.asarray(True))
+
+    def quadratic(fn):  # (a quadratic form: second derivatives that are not zero)
+        return lambda i, w: jnp.sum(weights * fn(i, w) * (1.0 + fn(i, w)))
+
+    orders = [
+        lambda g: jax.jacfwd(g, argnums=1),
+        lambda g: jax.jacfwd(jax.jacfwd(g, argnums=1), argnums=(0, 1)),
+        lambda g: jax.jacfwd(jax.grad(g, argnums=1), argnums=(0, 1)),
+    ]
+    pairs = [(jax.jit(o(quadratic(ours))), jax.jit(o(quadratic(product)))) for o in orders]
+    first = jax.jit(jax.grad(quadratic(ours), argnums=1))
+    for inertia, omega in [([2.0, 1.0, 2.5], [0.0, 0.0, 1.2]),  # major axis
+                           ([2.0, 1.0, 2.5], [0.8, 0.0, 0.0])]:  # intermediate axis
+        inertia, omega = jnp.asarray(inertia), jnp.asarray(omega)
+        assert np.array_equal(ours(inertia, omega), np.zeros((3, 3)))
+        for a, b in pairs:
+            assert tree_allclose(a(inertia, omega), b(inertia, omega), rtol=1e-12, atol=1e-12)
+        mixed = np.asarray(jax.jacfwd(first)(inertia, omega))
+        fd = _fd_jacobian(lambda i: first(jnp.asarray(i), omega), np.asarray(inertia))
+        assert np.max(np.abs(mixed)) > 1.0
+        np.testing.assert_allclose(mixed, fd, rtol=0, atol=tol(FINITE_DIFF) * np.max(np.abs(fd)))
+        # Where the branch is not taken, no flow is computed and the tangent is zero.
+        _, tangent = jax.jvp(lambda w: _spin_perturbation(inertia, w, t, jnp.asarray(False)),
+                             (omega,), (jnp.ones(3),))
+        assert np.array_equal(tangent, np.zeros((3, 3)))
+
+
+def _fd_jacobian(g, x, eps=1e-6):
+    """Central differences of a vector function: column k is d g / d x_k."""
+    x = np.asarray(x, np.float64)
+    cols = []
+    for k in range(x.size):
+        e = np.zeros_like(x)
+        e[k] = eps * max(1.0, abs(x[k]))
+        cols.append((np.asarray(g(x + e)) - np.asarray(g(x - e))) / (2 * e[k]))
+    return np.stack(cols, axis=-1)
