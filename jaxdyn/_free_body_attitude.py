@@ -128,38 +128,40 @@ def _equilibrium(inertia, omega, q0, t, active):
     return q.reshape(t.shape + (4,))
 
 
-@jax.custom_jvp
-def _spin_perturbation(inertia, omega, t, active):
-    """`dtheta(t) = X(t) (omega - stop_gradient(omega))`, zero in value, with `X(t)` the lower
-    left block of the linearised flow `expm(A t)`, `A = [[J, 0], [1, -skew(w)]]`. The flow
-    is computed only where a derivative is taken (the JVP rule): a value alone, as any
-    evaluation of the general case (which runs this branch too, for the `where`), costs no
-    matrix exponential, and so does a derivative where the branch is not `active` (its
-    tangent is then zero). Tangents of `inertia` and `t` multiply the zero `omega - w` and
-    give nothing; the rule computes the product itself as its primal, so that derivatives of
-    any order are those of the product."""
-    return jnp.zeros(t.shape + (3,), omega.dtype)
-
-
-@_spin_perturbation.defjvp
-def _spin_perturbation_jvp(primals, tangents):
-    inertia, omega, t, active = primals
-    d_omega = tangents[1]
+def _flow_product(inertia, omega, t, active):
+    """`X(t) (omega - stop_gradient(omega))`, zero in value, with `X(t)` the lower left block
+    of the linearised flow `expm(A t)`, `A = [[J, 0], [1, -skew(w)]]` (zero where the branch
+    is not `active`)."""
     dtype = omega.dtype
     w_bar = jax.lax.stop_gradient(omega)
     jac = euler_jacobian(inertia, w_bar)
     zero = jnp.zeros((3, 3), dtype)
     flow_matrix = jnp.block([[jac, zero], [jnp.eye(3, dtype=dtype), -skew(w_bar)]])
     # (expm's default of at most 16 squarings gives NaN past |A t| = 5.4 * 2^16, about 1e5 s
-    # of a spin at 1 rad/s; the NaN once reached the value too, through `flow @ delta`.)
+    # of a spin at 1 rad/s; the NaN once reached the value too, through this product.)
     flow = jax.lax.cond(
         active,
         lambda: jax.vmap(lambda tt: jax.scipy.linalg.expm(flow_matrix * tt,
                                                           max_squarings=64)[3:, :3])(t),
         lambda: jnp.zeros(t.shape + (3, 3), dtype))
-    # The primal as the product itself (zero in value): where this rule is differentiated
-    # again (a Hessian), the derivative of its primal is the flow, as for the product.
-    return flow @ (omega - w_bar), flow @ d_omega
+    return flow @ (omega - w_bar)
+
+
+@jax.custom_jvp
+def _spin_perturbation(inertia, omega, t, active):
+    """`_flow_product`, whose value is zero: returned as such, and the product computed only
+    where a derivative is taken (the JVP rule, the JVP of the product itself, so derivatives
+    of every order and in every order of the arguments are the product's). A value alone, as
+    any evaluation of the general case (which runs this branch too, for the `where`), costs
+    no matrix exponential, and a derivative where the branch is not `active` none either."""
+    return jnp.zeros(t.shape + (3,), omega.dtype)
+
+
+@_spin_perturbation.defjvp
+def _spin_perturbation_jvp(primals, tangents):
+    inertia, omega, t, active = primals
+    return jax.jvp(lambda i, w, tt: _flow_product(i, w, tt, active), (inertia, omega, t),
+                   tangents[:3])
 
 
 def _phase_arguments(c0, s0, m, m1, separatrix):
