@@ -43,14 +43,17 @@ def tree_allclose(x, y, *, rtol, atol=0.0):
 
 
 def central_difference(f, x, eps=1e-6):
-    """Central finite-difference gradient of a scalar function of a 1-D float64 array."""
+    """Central finite differences of a function of a 1-D float64 array: the gradient of a
+    scalar function, or the Jacobian of an array-valued one (`d f / d x_i` along the last
+    axis)."""
     x = np.asarray(x, dtype=np.float64)
-    g = np.zeros_like(x)
+    cols = []
     for i in range(x.size):
         e = np.zeros_like(x)
         e[i] = eps * max(1.0, abs(x[i]))
-        g[i] = (float(f(jnp.asarray(x + e))) - float(f(jnp.asarray(x - e)))) / (2 * e[i])
-    return g
+        cols.append((np.asarray(f(jnp.asarray(x + e)), np.float64)
+                     - np.asarray(f(jnp.asarray(x - e)), np.float64)) / (2 * e[i]))
+    return np.stack(cols, axis=-1)
 
 def expm_longdouble(a):
     """`expm(a)` by the Taylor series scaled and squared in NumPy's long double (a 64-bit
