@@ -169,7 +169,10 @@ def _equilibrium(moments, omega, t):
     return w.reshape(t.shape + (3,))
 
 
-def _check(inertia, omega0, t=None):
+_NO_TIMES = object()  # (`_check` of the functions that take no times; `t=None` is refused)
+
+
+def _check(inertia, omega0, t=_NO_TIMES):
     """Eager checks of the closed-form functions' inputs (skipped for traced values)."""
     from ._inertia import moments_checks
     from ._validation import ParameterError, as_float_array, finite_check, raise_if_violated
@@ -181,7 +184,7 @@ def _check(inertia, omega0, t=None):
     raise_if_violated(moments_checks("inertia", inertia))
     omega0 = as_float_array("omega0", omega0, (3,), inertia.dtype, host=True)
     raise_if_violated([finite_check("omega0", omega0)])  # (NumPy on the host: no program)
-    if t is None:
+    if t is _NO_TIMES:
         return inertia, omega0
     t = as_float_array("t", t, None, inertia.dtype, host=True)
     raise_if_violated([finite_check("t", t)])

@@ -288,6 +288,15 @@ def test_bad_quaternion(quaternion0, message):
         jd.torque_free_attitude([1.0, 2.0, 2.5], [0.1, 0.2, 0.3], quaternion0, 1.0)
 
 
+@pytest.mark.parametrize("t", [None, "1.0", [0.5, None]])
+def test_bad_times_name_the_field(t):
+    # (`t=None` once fell through to a ValueError from unpacking, in both closed forms)
+    for call in (lambda: jd.torque_free_attitude([1.0, 2.0, 2.5], [0.1, 0.2, 0.3], Q0, t),
+                 lambda: jd.torque_free_omega([1.0, 2.0, 2.5], [0.1, 0.2, 0.3], t)):
+        with pytest.raises(jd.ParameterError, match=r"^t="):
+            call()
+
+
 @pytest.mark.parametrize("inertia, omega0", [([2.0, 1.0, 2.5], [0.0, 0.0, 1.2]),
                                              ([2.0, 1.0, 2.5], [0.0, -0.7, 0.0]),
                                              ([1.0, 2.0, 3.0], [0.0, 0.0, 0.0])])
