@@ -5,7 +5,10 @@
   fresh interpreters.
 - **Commands**: each command in a fresh process, cold (an empty persistent compilation cache)
   and warm (the same cache, second invocation): wall time from outside, and the command's own
-  split into trace, lower, compile and run where it reports one (`jaxdyn run`).
+  split into trace, lower, compile and run where it reports one (`jaxdyn run`). With
+  `--baseline PYTHON`, the same commands run with another interpreter's jaxdyn (the code
+  before issue 19, say), alternating with this code over `--rounds` rounds, and each row
+  gives the ratios to it.
 - **Calls**: `jd.simulate` after compilation against a hand-written `jax.jit(diffeqsolve)` of
   the same problem (the vector field written out, parameters passed as arguments, the same
   tableau and tolerances, saving the start and the end), on the free body and on the falling
@@ -30,7 +33,9 @@
   way jaxdyn saved before (the sample buffer in the solver state, which diffrax copies at
   every step: `O(samples x steps)`; up to 1e4 samples), in the same process.
 
-Prints one JSON object. Run: `python benchmarks/latency.py [--quick]`.
+Prints one JSON object. Run: `python benchmarks/latency.py [--quick]`; the commands against
+the code before issue 19 (ebc494a, its own virtual environment):
+`python benchmarks/latency.py --only commands --rounds 3 --baseline /path/to/venv/bin/python`.
 """
 
 import argparse
@@ -44,11 +49,12 @@ import tempfile
 import time
 
 
-def _wall(argv, env=None, repeats=1):
+def _wall(argv, env=None, repeats=1, cwd=None):
     times, out = [], None
     for _ in range(repeats):
         t0 = time.perf_counter()
-        proc = subprocess.run(argv, capture_output=True, text=True, env=env, timeout=900)
+        proc = subprocess.run(argv, capture_output=True, text=True, env=env, timeout=900,
+                              cwd=cwd)
         times.append(time.perf_counter() - t0)
         if proc.returncode != 0:
             raise RuntimeError(f"{argv}: {proc.stderr[-500:]}")
@@ -87,7 +93,11 @@ def _fit_data(path):
     path.write_text("\n".join(rows) + "\n")
 
 
-def commands(quick):
+def commands(quick, baseline=None, rounds=1):
+    """Each command cold and warm in fresh processes; with `baseline` (a Python interpreter
+    whose `jaxdyn` is other code, such as a virtual environment holding the commit before
+    issue 19), the same commands with that code too, the two alternating in each of `rounds`
+    rounds so that a phase of the machine weighs on both alike; medians over the rounds."""
     from pathlib import Path
 
     tmp = Path(tempfile.mkdtemp(prefix="jaxdyn-latency-"))
@@ -104,18 +114,43 @@ def commands(quick):
     }
     if quick:
         cases = {k: cases[k] for k in ("run", "scenes")}
+    codes = {"now": sys.executable}
+    if baseline:
+        codes["baseline"] = baseline
+    # The commands run in the temporary folder: from a source checkout, `python -m` would
+    # import the checkout's jaxdyn whatever the interpreter. Each code's jaxdyn is reported.
+    where = {code: _wall([python, "-c", "import jaxdyn; print(jaxdyn.__file__)"],
+                         cwd=tmp)[1].strip() for code, python in codes.items()}
+    runs = {(name, code): {"cold": [], "warm": []} for name in cases for code in codes}
+    splits = {}
+    for r in range(rounds):
+        for name, args in cases.items():
+            for code, python in codes.items():
+                cache = tmp / f"cache-{name}-{code}-{r}"  # empty: a cold start
+                env = {**os.environ, "JAXDYN_CACHE_DIR": str(cache)}
+                argv = [python, "-m", "jaxdyn._cli", *args]
+                cold, text = _wall(argv, env, cwd=tmp)
+                warm, text_warm = _wall(argv, env, repeats=1 if quick else 3, cwd=tmp)
+                runs[name, code]["cold"].append(cold)
+                runs[name, code]["warm"].append(warm)
+                if code == "now" and "--json" in args and name.startswith("run"):
+                    splits[name] = {"cold_split": json.loads(text)["timing"],
+                                    "warm_split": json.loads(text_warm)["timing"]}
     out = {}
-    for name, args in cases.items():
-        cache = tmp / f"cache-{name}"
-        env = {**os.environ, "JAXDYN_CACHE_DIR": str(cache)}
-        argv = [sys.executable, "-m", "jaxdyn._cli", *args]
-        cold, text = _wall(argv, env)
-        warm, text_warm = _wall(argv, env, repeats=1 if quick else 3)
-        row = {"cold_s": cold, "warm_s": warm, "warm_over_cold": warm / cold}
-        if "--json" in args and name.startswith("run"):
-            row["cold_split"] = json.loads(text)["timing"]
-            row["warm_split"] = json.loads(text_warm)["timing"]
-        out[name] = row
+    for name in cases:
+        now = runs[name, "now"]
+        row = {"cold_s": statistics.median(now["cold"]),
+               "warm_s": statistics.median(now["warm"])}
+        row["warm_over_cold"] = row["warm_s"] / row["cold_s"]
+        if baseline:
+            base = runs[name, "baseline"]
+            row["baseline_cold_s"] = statistics.median(base["cold"])
+            row["baseline_warm_s"] = statistics.median(base["warm"])
+            row["cold_over_baseline_cold"] = row["cold_s"] / row["baseline_cold_s"]
+            row["warm_over_baseline_warm"] = row["warm_s"] / row["baseline_warm_s"]
+            row["rounds"] = {code: runs[name, code] for code in codes}
+        out[name] = {**row, **splits.get(name, {})}
+    out["jaxdyn"] = where
     return out
 
 
@@ -399,13 +434,19 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true",
                         help="fewer repeats, the quick commands, samples up to 1e5")
+    parser.add_argument("--baseline", metavar="PYTHON",
+                        help="commands: also time them with this interpreter's jaxdyn (for "
+                             "example a virtual environment holding the code before issue "
+                             "19), alternating with this code, and report the ratios")
+    parser.add_argument("--rounds", type=int, default=1,
+                        help="commands: rounds of cold and warm runs (medians over them)")
     parser.add_argument("--only", choices=("imports", "commands", "calls", "samples"),
                         help="one section alone")
     args = parser.parse_args()
     t0 = time.perf_counter()
     sections = {
         "imports": lambda: imports(3 if args.quick else 7),
-        "commands": lambda: commands(args.quick),
+        "commands": lambda: commands(args.quick, args.baseline, args.rounds),
         "calls": lambda: calls(100 if args.quick else 500),
         "samples": lambda: samples(args.quick),
     }

@@ -320,7 +320,7 @@ def _solve_all(scene: Scene, momentum, directions):
         energy = _invariant(scene, "energy", w)
         return w, ok, energy, eig, rel, unstable
 
-    return jax.vmap(one)(directions) + (scale,)
+    return jax.lax.map(one, directions) + (scale,)
 
 
 def _normalised(scene: Scene, momentum) -> tuple[Scene, float, float]:
