@@ -26,7 +26,7 @@ from ._scene import Scene
 from ._simulate import _prepare_run, _simulate, check_tolerances
 from ._solution import Trajectory
 from ._tolerance import FLOOR, ScaledPIDController
-from ._validation import ParameterError
+from ._validation import ParameterError, device_array
 
 MODES = ("adaptive", "lockstep", "vmap")
 _OK = (STATUS.index("completed"), STATUS.index("event"))
@@ -695,7 +695,21 @@ def _resolve(scene, y0, t1, *, n, key, vary, parameters, t0, ts, observe, keep, 
         atol=atol, dt0=dt0, max_steps=int(max_steps), mode=mode, events=bool(events),
         observe=final_state if observe is None else observe,
         keep=(None if keep else ()) if isinstance(keep, bool) else tuple(keep), vary=vary,
-        messages=tuple(scene.violations(ex_y0)[1]))
+        messages=_violation_messages(scene, ex_y0))
+
+
+def _violation_messages(scene: Scene, y) -> tuple[str, ...]:
+    """The messages of `scene.violations(y)`, from a trace alone (no check is evaluated: each
+    eager operation would compile a program of its own)."""
+    messages = []
+
+    def flags(y):
+        flags, msgs = scene.violations(y)
+        messages.extend(msgs)
+        return flags
+
+    jax.eval_shape(flags, y)
+    return tuple(messages)
 
 
 def _chunk_size(n: int, d: int, chunk_size) -> int:
@@ -762,12 +776,12 @@ class _Chunks:
         dtype = inputs.dtype
         shared = _Shared(
             scene=inputs.scene,
-            y0={k: jnp.asarray(v, dtype) for k, v in inputs.y_single.items()},
+            y0={k: device_array(v, dtype) for k, v in inputs.y_single.items()},
             params={k: jnp.asarray(v) for k, v in inputs.p_single.items()},
             key=inputs.key, t0=inputs.t0, t1=inputs.t1, ts=inputs.ts,
-            rtol=jnp.asarray(inputs.rtol, dtype), atol=jnp.asarray(inputs.atol, dtype),
+            rtol=device_array(inputs.rtol, dtype), atol=device_array(inputs.atol, dtype),
             dt0=inputs.dt0, dists=tuple(t.dist for t in inputs.targets),  # arguments too
-            n=jnp.asarray(inputs.n, jnp.uint32))
+            n=device_array(inputs.n, np.uint32))
         self.dyn, self.static = eqx.partition(shared, eqx.is_array)
         self.config = _ChunkConfig(
             targets=tuple(t._replace(dist=None) for t in inputs.targets), solver=inputs.solver,
