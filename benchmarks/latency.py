@@ -133,7 +133,7 @@ def commands(quick, baseline=None, rounds=1):
                 warm, text_warm = _wall(argv, env, repeats=1 if quick else 3, cwd=tmp)
                 runs[name, code]["cold"].append(cold)
                 runs[name, code]["warm"].append(warm)
-                if code == "now" and "--json" in args and name.startswith("run"):
+                if code == "now" and "--json" in args and name.startswith("run"):  # last round's
                     splits[name] = {"cold_split": json.loads(text)["timing"],
                                     "warm_split": json.loads(text_warm)["timing"]}
     out = {}

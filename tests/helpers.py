@@ -55,6 +55,7 @@ def central_difference(f, x, eps=1e-6):
                      - np.asarray(f(jnp.asarray(x - e)), np.float64)) / (2 * e[i]))
     return np.stack(cols, axis=-1)
 
+
 def expm_longdouble(a):
     """`expm(a)` by the Taylor series scaled and squared in NumPy's long double (a 64-bit
     mantissa on x86; only float64 where long double is float64, as on some ARM machines),

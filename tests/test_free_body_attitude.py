@@ -318,7 +318,6 @@ def test_spin_and_rest_over_long_times(inertia, omega0):
     assert np.all(np.isfinite(jac))
 
 
-
 def test_the_spin_branch_differentiates_as_the_linearised_flow_at_every_order():
     # At a spin about a principal axis the derivative with respect to the rates comes from
     # the linearised flow X(t) (lower left block of expm(A t), A = [[J, 0], [1, -skew(w)]])
@@ -340,6 +339,7 @@ def test_the_spin_branch_differentiates_as_the_linearised_flow_at_every_order():
         return flow @ (omega - w_bar)
 
     weights = jnp.asarray(np.arange(1.0, 10.0).reshape(3, 3))
+
     def ours(i, w):
         return _spin_perturbation(i, w, t, jnp.asarray(True))
 
