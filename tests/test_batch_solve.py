@@ -10,6 +10,7 @@ import numpy as np
 import optimistix as optx
 import pytest
 
+from jaxdyn import _batch_solve
 from jaxdyn._batch_solve import Tableau, batch_solve, rk_step, tableau
 
 SOLVERS = [dfx.Tsit5(), dfx.Dopri5(), dfx.Dopri8(), dfx.Bosh3(), dfx.Heun()]
@@ -105,6 +106,72 @@ def test_lockstep_alone_takes_the_steps_of_diffeqsolve():
     assert int(r.steps[0]) == int(sol.stats["num_accepted_steps"])
     assert int(r.rejected[0]) == int(sol.stats["num_rejected_steps"])
     _close(_row(r.y_final, 0), jax.tree.map(lambda x: x[-1], sol.ys))
+
+
+def test_large_fields_have_their_stages_evaluated_in_a_loop():
+    """The engine loops over the stages of a field of more than `ROLL_EQUATIONS` operations
+    (counted in its jaxpr, the bodies of its calls included) and unrolls smaller ones."""
+    _, params, y0 = _cases()["pendulum"]
+    t = jnp.zeros(4)
+
+    def driven(harmonics):
+        @jax.jit  # (a call: its body counts)
+        def drive(t):
+            return sum(0.3 / m**2 * jnp.cos(m * t) for m in range(1, harmonics + 1))
+
+        return lambda p, t, y: {"q": y["v"], "v": -p["k"] * jnp.sin(y["q"]) + drive(t)}
+
+    assert not _batch_solve._rolled(pendulum, params, t, y0)
+    assert not _batch_solve._rolled(driven(10), params, t, y0)
+    assert _batch_solve._rolled(driven(100), params, t, y0)
+
+
+@pytest.mark.parametrize("solver", [dfx.Tsit5(), dfx.Dopri8()], ids=lambda s: type(s).__name__)
+def test_stages_in_a_loop_take_the_steps_of_the_unrolled_stages(solver, monkeypatch):
+    """A run with its stages in a loop (forced here on the pendulum) against the same run
+    unrolled (whose steps are diffrax's, above): the same accepted and rejected steps, the
+    same saved values to round-off (Dopri8: 13 stages, zeros in its tableau)."""
+    field, params, y0 = _cases()["pendulum"]
+    t1, ts = 10.0, jnp.linspace(0.0, 10.0, 7)
+    unrolled = _engine(field, params, y0, t1, ts, solver)
+    monkeypatch.setattr(_batch_solve, "ROLL_EQUATIONS", 0)
+    looped = _engine(field, params, y0, t1, ts, solver)
+    assert np.all(np.asarray(looped.status) == 0)
+    assert np.array_equal(looped.steps, unrolled.steps) and np.all(np.asarray(looped.steps) > 10)
+    assert np.array_equal(looped.rejected, unrolled.rejected)
+    for a, b in zip(jax.tree.leaves((looped.ys, looped.y_final)),
+                    jax.tree.leaves((unrolled.ys, unrolled.y_final))):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("solver", SOLVERS, ids=lambda s: type(s).__name__)
+def test_stages_in_a_loop_are_the_unrolled_stages(solver, monkeypatch):
+    """One step of every tableau, its stages in a loop against unrolled: the same to a few
+    units in the last place (the same sums, compiled apart), the error estimate (a difference
+    of nearly equal sums) to its own round-off."""
+    tab = tableau(solver)
+    rng = np.random.default_rng(5)
+    p = {"k": jnp.asarray(rng.uniform(1.0, 10.0, 8))}
+    y = (jnp.asarray(rng.uniform(-1.0, 1.0, 8)), jnp.asarray(rng.normal(size=8)))
+    t, h = jnp.asarray(rng.uniform(0.0, 5.0, 8)), jnp.asarray(rng.uniform(0.05, 0.3, 8))
+
+    def f(p, t, y):
+        out = pendulum(p, t, {"q": y[0], "v": y[1]})
+        return (out["q"], out["v"])
+
+    def step(p, t, y, h):
+        return rk_step(tab, f, p, t, y, h)
+
+    unrolled = jax.jit(step)(p, t, y, h)
+    monkeypatch.setattr(_batch_solve, "ROLL_EQUATIONS", 0)
+    looped = jax.jit(step)(p, t, y, h)
+    (fs_l, y1_l, err_l), (fs_u, y1_u, err_u) = looped, unrolled
+    assert len(fs_l) == len(fs_u) == len(tab.a) + 1
+    for a, b in zip(jax.tree.leaves((fs_l, y1_l)), jax.tree.leaves((fs_u, y1_u))):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-14, atol=1e-15)
+    scale = max(float(jnp.max(jnp.abs(x))) for x in jax.tree.leaves(fs_u)) * float(h.max())
+    for a, b in zip(err_l, err_u):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-14 * scale)
 
 
 @pytest.mark.parametrize("solver", [dfx.Tsit5(), dfx.Dopri8()], ids=lambda s: type(s).__name__)
