@@ -279,7 +279,8 @@ def rk_step(tab: Tableau, f: Callable, p, t, y: tuple, h):
 def _stages_in_a_loop(tab: Tableau, f: Callable, p, t, y: tuple, h, f0):
     """The stage derivatives of `rk_step` from a `fori_loop` over the stages after the first:
     stage `i + 1` from `y + h * sum_j a[i][j] * f_j` over every earlier stage `j` (the
-    zero coefficients of the tableau add exact zeros)."""
+    zero coefficients of the tableau add exact zeros; only where a stage is not finite does
+    a zero coefficient carry it on, as NaN, into the later stages)."""
     stages = len(tab.a) + 1
     dtype = h.dtype
     a = np.zeros((stages - 1, stages - 1))
