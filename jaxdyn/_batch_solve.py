@@ -252,7 +252,7 @@ def _rolled(f, p, t, y) -> bool:
     return _equations(jax.make_jaxpr(f)(p, t, y).jaxpr) > ROLL_EQUATIONS
 
 
-def rk_step(tab: Tableau, f: Callable, p, t, y: tuple, h):
+def rk_step(tab: Tableau, f: Callable, p, t, y: tuple, h, looped: bool | None = None):
     """One explicit Runge-Kutta step of size `h` over rows: the stage derivatives, `y1` and
     the error estimate.
 
@@ -266,9 +266,12 @@ def rk_step(tab: Tableau, f: Callable, p, t, y: tuple, h):
     holds one copy of the field instead of one per stage (a step appears several times in an
     ensemble's program, each stage a copy of the field when unrolled). The loop forms the
     same sums in the same order; XLA compiles the two forms apart, so a stage can differ in
-    its last bit (tests/test_batch_solve.py)."""
+    its last bit (tests/test_batch_solve.py). `looped`: the decision, where the caller has
+    made it already (`_Loop.rk_step`); `None` to decide here."""
     fs = [f(p, t, y)]
-    if len(tab.a) > 1 and _rolled(f, p, t, y):
+    if looped is None:
+        looped = _rolled(f, p, t, y)
+    if len(tab.a) > 1 and looped:
         fs = _stages_in_a_loop(tab, f, p, t, y, h, fs[0])
     else:
         for row, ci in zip(tab.a, tab.c):
@@ -444,6 +447,14 @@ class _Loop:
         self.t1, self.ts, self.rtol, self.max_steps = t1, ts, rtol, max_steps
         self.lockstep, self.axis_name = lockstep, axis_name
         self.eps = jnp.finfo(t1.dtype).eps
+        self.looped = None  # whether `rk_step` loops over the stages (decided at its first call)
+
+    def rk_step(self, p, t, y, h):
+        """`rk_step` of this loop's tableau and field, whether its stages are looped decided
+        once (a trace of the field) for every step of the program."""
+        if self.looped is None:
+            self.looped = _rolled(self.f, p, t, y)
+        return rk_step(self.tab, self.f, p, t, y, h, looped=self.looped)
 
     def bmin(self, x):
         """The smallest element over the batch (every shard of it)."""
@@ -509,7 +520,7 @@ class _Loop:
         h = jnp.where(alive, jnp.minimum(dt, self.t1 - t), 0.0)
         if self.lockstep:
             h = jnp.where(alive, self.bmin(jnp.where(alive, h, jnp.inf)), 0.0)
-        _, y1, err = rk_step(self.tab, self.f, p, t, y, h)
+        _, y1, err = self.rk_step(p, t, y, h)
         norm = _rms(tuple(e / (floor + self.rtol * jnp.maximum(jnp.abs(a), jnp.abs(b)))
                           for e, a, b, floor in zip(err, y, y1, c["atol"])))
         return dict(c, h=h, attempt=pack_pairs(tuple(y1) + (norm,)))
@@ -550,7 +561,7 @@ class _Loop:
         # event, after the event has been located), from the stages again (once per step).
         saved, nxt = c["saved"], c["nxt"]
         if self.ts is not None:
-            fs = rk_step(self.tab, self.f, p, t, y, h)[0]
+            fs = self.rk_step(p, t, y, h)[0]
             saved, nxt = _save(self.ts, saved, nxt, advance, t_new, lambda s: _interpolate(
                 self.weights, t, t_new, y, y1, fs, h, jnp.full(t.shape, s)))
         nacc = c["nacc"] + accept.astype(jnp.int32)
@@ -765,7 +776,7 @@ def _locate_events(loop: _Loop, crossed, p, t, y, dt, saved, nxt, condition=None
     condition = (lambda s, y: loop.G(p, s, y)) if condition is None else condition
     h = jnp.where(crossed, dt, 0.0)
     ta, ya = t, y
-    fs, yb, _ = rk_step(loop.tab, loop.f, p, ta, ya, h)
+    fs, yb, _ = loop.rk_step(p, ta, ya, h)
     tb = ta + h
 
     def interpolate(s):
