@@ -94,7 +94,15 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from ._elliptic import _carlson_rj, ellipj
-from ._free_body import _check, _d, _safe_general, _setup, _sorted, euler_jacobian
+from ._free_body import (
+    _check,
+    _d,
+    _safe_general,
+    _setup,
+    _sorted,
+    euler_jacobian,
+    over_times,
+)
 from ._rotations import dcm_to_quat, quat_conjugate, quat_multiply, safe_norm, skew
 
 
@@ -368,7 +376,7 @@ def torque_free_attitude(
     `t`, with `q(0) = quaternion0 / |quaternion0|`; they satisfy `q' = q ⊗ (0, w) / 2` with
     `w = torque_free_omega(inertia, omega0, t)`.
     """
-    return _torque_free_attitude(*_check_attitude(inertia, omega0, quaternion0, t))
+    return over_times(_torque_free_attitude, *_check_attitude(inertia, omega0, quaternion0, t))
 
 
 @jax.jit

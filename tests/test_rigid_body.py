@@ -1,6 +1,8 @@
 """The torque-free body and its effects, checked against scipy integrations, closed forms and
 conservation laws."""
 
+from functools import partial
+
 import diffrax as dfx
 import jax
 import jax.numpy as jnp
@@ -243,6 +245,51 @@ def test_changing_a_parameter_does_not_recompile():
     with new_programs() as compiled:
         jd.simulate(scene, y0, 4.0, max_steps=54_321)
     assert compiled
+
+
+@pytest.mark.parametrize("attitude", [False, True])
+def test_a_new_number_of_times_reuses_the_closed_forms_program(attitude):
+    # The closed forms are evaluated over the times padded to one of a few lengths, so a new
+    # number of times (a notebook's slider over the time span) lowers only the small program
+    # that cuts the padding off, not the closed form again.
+    inertia, omega0 = [1.0, 2.0, 3.0], [0.3, 1.0, 0.2]
+
+    def closed_form(t):
+        if attitude:
+            return jd.torque_free_attitude(inertia, omega0, [0.5, 0.5, 0.5, 0.5], t)
+        return jd.torque_free_omega(inertia, omega0, t)
+
+    from jaxdyn import _free_body, _free_body_attitude
+
+    jitted = (_free_body_attitude._torque_free_attitude if attitude
+              else _free_body._torque_free_omega)
+    closed_form(np.linspace(0.0, 9.0, 100))
+    programs = jitted._cache_size()
+    for n in (101, 107, 112):  # padded to 112, as 100 was
+        with new_programs() as compiled:
+            out = closed_form(np.linspace(0.0, 9.0, n))
+        assert len(compiled) == 1 and out.shape == (n, 4 if attitude else 3)  # the cut alone
+    assert jitted._cache_size() == programs
+    with new_programs() as compiled:  # positive control: past the padded length
+        closed_form(np.linspace(0.0, 9.0, 113))
+    assert len(compiled) == 2 and jitted._cache_size() == programs + 1
+
+    # The padding changes nothing but round-off (XLA vectorises another length otherwise):
+    # every shape of times against the closed form's own program at that exact length, and
+    # the times one at a time.
+    roundoff = 16 * np.finfo(np.float64).eps  # (the values are of size one)
+    arrays = [jnp.asarray(inertia), jnp.asarray(omega0)]
+    program = partial(jitted, *arrays, *([jnp.asarray([0.5] * 4)] if attitude else []))
+    for t in (np.float64(1.3), np.linspace(-2.0, 7.0, 17), np.linspace(0.0, 40.0, 35)
+              .reshape(5, 7), np.zeros(0), np.linspace(0.0, 400.0, 1000)):
+        got, want = closed_form(t), program(jnp.asarray(t))
+        assert got.shape == want.shape == t.shape + (4 if attitude else 3,)
+        assert np.allclose(got, want, rtol=0, atol=roundoff)
+    t = np.linspace(0.0, 20.0, 9)
+    assert np.allclose(closed_form(t), np.stack([closed_form(x) for x in t]), rtol=0,
+                       atol=roundoff)
+    # Under the caller's transformation: its own program, of the caller's length.
+    assert np.allclose(jax.jit(closed_form)(t), closed_form(t), rtol=0, atol=roundoff)
 
 
 def test_solver_and_controller_choices():
