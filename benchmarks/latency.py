@@ -360,6 +360,20 @@ def calls(repeats):
     out["torque_free_attitude"] = {"call_us": attitude_us, "program_us": attitude_program_us,
                                    "call_over_program": attitude_us / attitude_program_us,
                                    "compile_s": compile_s}
+    # A number of times not seen before (a notebook's slider over the time span): the times
+    # are padded to one of a few lengths (201-224 share the program of 200), so only the small
+    # program that cuts the padding off is new. Medians over five new lengths each.
+    for name, fn in (("torque_free_omega", lambda t: jd.torque_free_omega(*host[:2], t)),
+                     ("torque_free_attitude", lambda t: jd.torque_free_attitude(*host[:3], t))):
+        times = []
+        for n in (201, 205, 210, 215, 220):
+            t = np.linspace(0.0, 20.0, n)
+            start = time.perf_counter()
+            jax.block_until_ready(fn(t))
+            times.append(time.perf_counter() - start)
+        out[name]["new_length_s"] = statistics.median(times)
+    out["torque_free_attitude"]["new_length_over_compile"] = (
+        out["torque_free_attitude"]["new_length_s"] / compile_s)
     return out
 
 

@@ -210,7 +210,9 @@ def torque_free_omega(
 
     **Returns:**
 
-    Body rates with shape `t.shape + (3,)`.
+    Body rates with shape `t.shape + (3,)`. The compiled closed form is reused for any number
+    of times within one of a few padded lengths (four per octave), so a new number of times
+    (a slider over the time span) costs a call, not a compilation.
 
     Reference: Landau & Lifshitz, *Mechanics*, section 37.
     """

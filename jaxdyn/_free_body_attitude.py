@@ -374,7 +374,8 @@ def torque_free_attitude(
 
     Unit quaternions with shape `t.shape + (4,)` and the dtype of `inertia`, continuous in
     `t`, with `q(0) = quaternion0 / |quaternion0|`; they satisfy `q' = q ⊗ (0, w) / 2` with
-    `w = torque_free_omega(inertia, omega0, t)`.
+    `w = torque_free_omega(inertia, omega0, t)`. As there, a new number of times reuses the
+    compiled closed form.
     """
     return over_times(_torque_free_attitude, *_check_attitude(inertia, omega0, quaternion0, t))
 
