@@ -309,6 +309,14 @@ def calls(repeats):
         ev_us, ev_hand_us, rs_us, rs_hand_us = _medians_us([
             lambda: dense.evaluate(t_eval), lambda: hand(d_leaves, t_eval),
             lambda: dense.resample(200).ys, lambda: hand(d_leaves)], repeats)
+        # `traj.evaluate` at a number of times not seen before (201-220 share the padded
+        # length of 200: only the small program that cuts the padding off is new).
+        new_lengths = []
+        for n in (201, 205, 210, 215, 220):
+            t_new = np.linspace(0.0, float(dense.t_final), n)
+            start = time.perf_counter()
+            jax.block_until_ready(dense.evaluate(t_new))
+            new_lengths.append(time.perf_counter() - start)
         final_ours = np.concatenate([np.ravel(v) for v in traj.y_final.values()])
         final_hand = np.ravel(np.asarray(sol.ys)[-1])
         out[name] = {
@@ -329,6 +337,7 @@ def calls(repeats):
             "new_trajectory_output_over_program": first_us / program_first_us,
             "evaluate_200_us": ev_us, "hand_jit_evaluate_us": ev_hand_us,
             "evaluate_over_hand": ev_us / ev_hand_us,
+            "evaluate_new_length_s": statistics.median(new_lengths),
             "resample_200_us": rs_us, "hand_jit_resample_us": rs_hand_us,
             "resample_over_hand": rs_us / rs_hand_us,
         }

@@ -12,7 +12,6 @@ computing `H^2` and `2 T I_k` separately; in particular the complementary parame
 `1 - m = (I3 - I1) D_2 / ((I3 - I2) D_1)` is exact near the separatrix, where `m -> 1`.
 """
 
-import functools
 from typing import NamedTuple
 
 import jax
@@ -21,6 +20,7 @@ import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ._elliptic import carlson_rf, ellipj, ellipk
+from ._padded import over_padded_times
 
 
 class _Setup(NamedTuple):
@@ -219,39 +219,15 @@ def torque_free_omega(
     return over_times(_torque_free_omega, *_check(inertia, omega0, t))
 
 
-def _padded_length(n: int) -> int:
-    """The length `n` times are padded to (`over_times`): at least 16, then four lengths per
-    octave (16, 20, 24, 28, 32, 40, ...), so that at most a fifth of the work is padding."""
-    if n <= 16:
-        return 16
-    octave = 1 << (n.bit_length() - 1)  # the power of two at or below n
-    return next(octave * k // 4 for k in (4, 5, 6, 7, 8) if n <= octave * k // 4)
-
-
 def over_times(program, *args):
-    """`program(*args)` (last argument: the times, any shape), for a closed form that treats
-    each time alone: with concrete inputs, over the times flattened and padded with zeros to
-    one of a few lengths (`_padded_length`), the padding cut off afterwards. A new number of
-    times then reuses a compiled program instead of tracing and compiling one of its own
-    (1.4-1.8 s for the rates, 2.8-3.2 s for the attitude on 2 cores), as a notebook's slider
-    over the time span would. Under a transformation (`jit`, `grad`, `vmap` of the caller),
-    `program(*args)` as it is: the caller's program has one length."""
+    """`program(*args)` (last argument: the times), for a closed form that treats each time
+    alone: with concrete inputs, over padded times (`jaxdyn._padded`), so that a new number of
+    times reuses the compiled closed form. Under a transformation (`jit`, `grad`, `vmap` of
+    the caller), `program(*args)` as it is: the caller's program has one length."""
     *rest, t = args
     if any(isinstance(x, jax.core.Tracer) for x in args):
         return program(*args)
-    t = np.asarray(t)
-    n = t.size
-    padded = np.zeros(_padded_length(n), t.dtype)
-    padded[:n] = t.reshape(-1)
-    out = program(*rest, padded)
-    return _cut(out, n, t.shape)
-
-
-@functools.partial(jax.jit, static_argnums=(1, 2))
-def _cut(out, n, shape):
-    """The first `n` rows of `out`, reshaped to the times' `shape` (one small program per
-    count, where slicing and reshaping eagerly would be two)."""
-    return out[:n].reshape(shape + out.shape[1:])
+    return over_padded_times(lambda padded: program(*rest, padded), np.asarray(t))
 
 
 @jax.jit

@@ -15,6 +15,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from ._custom_types import State
 from ._outcome import NAMES, Outcome, SimulationError
+from ._padded import over_padded_times
 from ._programs import StoredProgram
 from ._scene import Scene
 from ._validation import ParameterError, as_float_array, is_concrete
@@ -80,7 +81,9 @@ class Trajectory(eqx.Module):
         where an event ended it), from the solver's dense output (`simulate(..., dense=True)`):
         for one time, a state; for a 1-D array of times, the states stacked along a first
         axis. Times outside the run give nan (as saved times after an event are `inf`): also
-        past an event within the last step, where the step's interpolant would go on."""
+        past an event within the last step, where the step's interpolant would go on. A new
+        number of times reuses the compiled program (the times are padded to one of a few
+        lengths), so a slider over the resolution costs a call, not a compilation."""
         if self.interpolation is None:
             raise ParameterError("evaluate needs the dense output: simulate(..., dense=True)")
         dtype = self.t_final.dtype
@@ -91,8 +94,15 @@ class Trajectory(eqx.Module):
         if t.ndim > 1:
             raise ParameterError(f"t has shape {t.shape}: expected a time or a 1-D array of "
                                  "times")
-        return _trajectory_program("evaluate", _evaluate_of, _evaluate_filtered, self,
-                                   dynamic=(t,))
+
+        def evaluate(t):
+            return _trajectory_program("evaluate", _evaluate_of, _evaluate_filtered, self,
+                                       dynamic=(t,))
+
+        if t.ndim == 1 and _concrete_arrays(t, self.t_final):  # (not under a transformation)
+            # A new number of times reuses the program (`jaxdyn._padded`).
+            return over_padded_times(evaluate, np.asarray(t))
+        return evaluate(t)
 
     def resample(self, num: int) -> "Trajectory":
         """The same run saved at `num` evenly spaced times from its start to its end (the event

@@ -9,7 +9,7 @@ import uuid
 import jax
 import numpy as np
 import pytest
-from helpers import host_devices_env
+from helpers import host_devices_env, new_programs
 
 import jaxdyn as jd
 from jaxdyn import _programs, _simulate, _solution
@@ -620,6 +620,40 @@ def test_a_solver_without_an_error_estimate_takes_fixed_steps():
                     stepsize_controller=dfx.PIDController(rtol=1e-6, atol=1e-9))
     with pytest.raises(jd.ParameterError, match="RK4 takes fixed steps: give dt0"):
         jd.simulate(scene, y0, 20.0, solver=jd.RK4())
+
+
+def test_padded_lengths_are_few_and_waste_at_most_a_fifth():
+    from jaxdyn._padded import padded_length
+
+    lengths = [padded_length(n) for n in range(1, 1 << 14)]
+    assert all(p >= max(n, 16) for n, p in enumerate(lengths, 1))
+    assert all(p <= 1.25 * n for n, p in enumerate(lengths, 1) if n > 16)
+    assert len(set(lengths)) == 1 + 4 * 10  # 16, then four per octave up to 2^14
+    assert padded_length(0) == 16 and padded_length(10**6) == 1 << 20
+
+
+def test_a_new_number_of_times_reuses_the_evaluate_program():
+    # `traj.evaluate` pads the times to one of a few lengths (`jaxdyn._padded`), so a new
+    # number of times (a slider over the resolution) lowers only the small program that cuts
+    # the padding off; the values are those of the same evaluation traced at that length.
+    scene = jd.Scene(jd.RigidBody(inertia=[1.0, 2.0, 3.0]))
+    traj = jd.simulate(scene, scene.state(omega=[0.3, 1.0, 0.2]), 4.0, dense=True)
+    traj.evaluate(np.linspace(0.0, 4.0, 100))  # padded to 112
+    (program,) = [p for key, p in _solution._PROGRAMS.items() if key[0] == "evaluate"
+                  and key[1] == jax.tree_util.tree_structure(traj)]
+    signatures = len(program.calls)
+    traced = jax.jit(lambda tr, t: tr.evaluate(t))
+    for n in (101, 106, 112):
+        t = np.linspace(-0.5, 4.5, n)  # (some outside the run: nan there, as traced)
+        with new_programs() as compiled:
+            got = traj.evaluate(t)
+        assert len(compiled) == 1 and got["omega"].shape == (n, 3)  # the cut alone
+        np.testing.assert_allclose(got["omega"], traced(traj, t)["omega"], rtol=1e-14,
+                                   atol=1e-15)
+    assert len(program.calls) == signatures
+    with new_programs() as compiled:  # positive control: past the padded length
+        traj.evaluate(np.linspace(0.0, 4.0, 113))
+    assert len(compiled) == 2 and len(program.calls) == signatures + 1
 
 
 def test_dense_output_calls_trace_once_per_structure_and_shape():
