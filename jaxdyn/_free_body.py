@@ -16,7 +16,6 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from jaxtyping import Array, ArrayLike, Float
 
 from ._elliptic import carlson_rf, ellipj, ellipk
@@ -216,18 +215,9 @@ def torque_free_omega(
 
     Reference: Landau & Lifshitz, *Mechanics*, section 37.
     """
-    return over_times(_torque_free_omega, *_check(inertia, omega0, t))
-
-
-def over_times(program, *args):
-    """`program(*args)` (last argument: the times), for a closed form that treats each time
-    alone: with concrete inputs, over padded times (`jaxdyn._padded`), so that a new number of
-    times reuses the compiled closed form. Under a transformation (`jit`, `grad`, `vmap` of
-    the caller), `program(*args)` as it is: the caller's program has one length."""
-    *rest, t = args
-    if any(isinstance(x, jax.core.Tracer) for x in args):
-        return program(*args)
-    return over_padded_times(lambda padded: program(*rest, padded), np.asarray(t))
+    inertia, omega0, t = _check(inertia, omega0, t)
+    return over_padded_times(lambda t: _torque_free_omega(inertia, omega0, t), t, inertia,
+                             omega0)
 
 
 @jax.jit

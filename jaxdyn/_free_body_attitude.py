@@ -94,15 +94,8 @@ import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
 
 from ._elliptic import _carlson_rj, ellipj
-from ._free_body import (
-    _check,
-    _d,
-    _safe_general,
-    _setup,
-    _sorted,
-    euler_jacobian,
-    over_times,
-)
+from ._free_body import _check, _d, _safe_general, _setup, _sorted, euler_jacobian
+from ._padded import over_padded_times
 from ._rotations import dcm_to_quat, quat_conjugate, quat_multiply, safe_norm, skew
 
 
@@ -377,7 +370,9 @@ def torque_free_attitude(
     `w = torque_free_omega(inertia, omega0, t)`. As there, a new number of times reuses the
     compiled closed form.
     """
-    return over_times(_torque_free_attitude, *_check_attitude(inertia, omega0, quaternion0, t))
+    inertia, omega0, quaternion0, t = _check_attitude(inertia, omega0, quaternion0, t)
+    return over_padded_times(lambda t: _torque_free_attitude(inertia, omega0, quaternion0, t),
+                             t, inertia, omega0, quaternion0)
 
 
 @jax.jit

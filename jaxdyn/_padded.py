@@ -25,11 +25,16 @@ def padded_length(n: int) -> int:
     return next(octave * k // 4 for k in (4, 5, 6, 7, 8) if n <= octave * k // 4)
 
 
-def over_padded_times(fn: Callable, t: np.ndarray):
-    """`fn(t)` for times `t` on the host (a NumPy array, any shape) and a function that treats
-    each time alone and returns arrays (or a tree of them) with a leading axis over the
-    flattened times: evaluated over the times padded with the last one to `padded_length`, the
-    padding cut off and the leading axis reshaped to `t.shape`."""
+def over_padded_times(fn: Callable, t, *inputs):
+    """`fn(t)` for a function that treats each time alone and returns arrays (or a tree of
+    them) with a leading axis over the flattened times (`t`: any shape): evaluated over the
+    times padded with the last one to `padded_length`, the padding cut off and the leading
+    axis reshaped to `t.shape`. Where `t` or any of the other `inputs` `fn` depends on is
+    traced (the caller's `jit`, `grad` or `vmap`), `fn(t)` as it is: the caller's program has
+    one length."""
+    if any(isinstance(x, jax.core.Tracer) for x in (t, *inputs)):
+        return fn(t)
+    t = np.asarray(t)
     n = t.size
     padded = np.empty(padded_length(n), t.dtype)
     padded[:n] = t.reshape(-1)

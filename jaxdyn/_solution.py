@@ -99,9 +99,8 @@ class Trajectory(eqx.Module):
             return _trajectory_program("evaluate", _evaluate_of, _evaluate_filtered, self,
                                        dynamic=(t,))
 
-        if t.ndim == 1 and _concrete_arrays(t, self.t_final):  # (not under a transformation)
-            # A new number of times reuses the program (`jaxdyn._padded`).
-            return over_padded_times(evaluate, np.asarray(t))
+        if t.ndim == 1:  # a new number of times reuses the program (`jaxdyn._padded`)
+            return over_padded_times(evaluate, t, self.t_final)
         return evaluate(t)
 
     def resample(self, num: int) -> "Trajectory":
