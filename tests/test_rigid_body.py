@@ -276,20 +276,24 @@ def test_a_new_number_of_times_reuses_the_closed_forms_program(attitude):
 
     # The padding changes nothing but round-off (XLA vectorises another length otherwise):
     # every shape of times against the closed form's own program at that exact length, and
-    # the times one at a time.
+    # the times one at a time. Both closed forms pad through the one `over_padded_times`, so
+    # the attitude (whose program takes 3-4 s to compile, each length anew) is held to the
+    # shapes that exercise its own reshaping of the output (scalar, 2-D, empty).
     roundoff = 16 * np.finfo(np.float64).eps  # (the values are of size one)
     arrays = [jnp.asarray(inertia), jnp.asarray(omega0)]
     program = partial(jitted, *arrays, *([jnp.asarray([0.5] * 4)] if attitude else []))
-    for t in (np.float64(1.3), np.linspace(-2.0, 7.0, 17), np.linspace(0.0, 40.0, 35)
-              .reshape(5, 7), np.zeros(0), np.linspace(0.0, 400.0, 1000)):
+    shapes = (np.float64(1.3), np.linspace(0.0, 40.0, 35).reshape(5, 7), np.zeros(0))
+    if not attitude:
+        shapes += (np.linspace(-2.0, 7.0, 17), np.linspace(0.0, 400.0, 1000))
+    for t in shapes:
         got, want = closed_form(t), program(jnp.asarray(t))
         assert got.shape == want.shape == t.shape + (4 if attitude else 3,)
         assert np.allclose(got, want, rtol=0, atol=roundoff)
     t = np.linspace(0.0, 20.0, 9)
     assert np.allclose(closed_form(t), np.stack([closed_form(x) for x in t]), rtol=0,
                        atol=roundoff)
-    # Under the caller's transformation: its own program, of the caller's length.
-    assert np.allclose(jax.jit(closed_form)(t), closed_form(t), rtol=0, atol=roundoff)
+    if not attitude:  # under the caller's transformation: its own program, of its length
+        assert np.allclose(jax.jit(closed_form)(t), closed_form(t), rtol=0, atol=roundoff)
 
 
 def test_solver_and_controller_choices():
