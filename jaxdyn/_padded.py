@@ -15,6 +15,8 @@ from collections.abc import Callable
 import jax
 import numpy as np
 
+from ._validation import is_concrete
+
 
 def padded_length(n: int) -> int:
     """The length `n` times are padded to: at least 16, then four lengths per octave (16, 20,
@@ -32,7 +34,7 @@ def over_padded_times(fn: Callable, t, *inputs):
     axis reshaped to `t.shape`. Where `t` or any of the other `inputs` `fn` depends on is
     traced (the caller's `jit`, `grad` or `vmap`), `fn(t)` as it is: the caller's program has
     one length."""
-    if any(isinstance(x, jax.core.Tracer) for x in (t, *inputs)):
+    if not is_concrete(t, *inputs):
         return fn(t)
     t = np.asarray(t)
     n = t.size
