@@ -154,6 +154,21 @@ def commands(quick, baseline=None, rounds=1):
     return out
 
 
+def _new_length_s(fn, t_end):
+    """The median time of `fn(t)` over five numbers of times not seen before (201-220, evenly
+    spaced from 0 to `t_end`), after a call at 200: the first call at each new length."""
+    import jax
+    import numpy as np
+
+    times = []
+    for n in (201, 205, 210, 215, 220):
+        t = np.linspace(0.0, t_end, n)
+        start = time.perf_counter()
+        jax.block_until_ready(fn(t))
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
 def _median_us(fn, repeats):
     return _medians_us([fn], repeats)[0]
 
@@ -311,12 +326,7 @@ def calls(repeats):
             lambda: dense.resample(200).ys, lambda: hand(d_leaves)], repeats)
         # `traj.evaluate` at a number of times not seen before (201-220 share the padded
         # length of 200: only the small program that cuts the padding off is new).
-        new_lengths = []
-        for n in (201, 205, 210, 215, 220):
-            t_new = np.linspace(0.0, float(dense.t_final), n)
-            start = time.perf_counter()
-            jax.block_until_ready(dense.evaluate(t_new))
-            new_lengths.append(time.perf_counter() - start)
+        new_length_s = _new_length_s(dense.evaluate, float(dense.t_final))
         final_ours = np.concatenate([np.ravel(v) for v in traj.y_final.values()])
         final_hand = np.ravel(np.asarray(sol.ys)[-1])
         out[name] = {
@@ -337,7 +347,7 @@ def calls(repeats):
             "new_trajectory_output_over_program": first_us / program_first_us,
             "evaluate_200_us": ev_us, "hand_jit_evaluate_us": ev_hand_us,
             "evaluate_over_hand": ev_us / ev_hand_us,
-            "evaluate_new_length_s": statistics.median(new_lengths),
+            "evaluate_new_length_s": new_length_s,
             "resample_200_us": rs_us, "hand_jit_resample_us": rs_hand_us,
             "resample_over_hand": rs_us / rs_hand_us,
         }
@@ -374,13 +384,7 @@ def calls(repeats):
     # program that cuts the padding off is new. Medians over five new lengths each.
     for name, fn in (("torque_free_omega", lambda t: jd.torque_free_omega(*host[:2], t)),
                      ("torque_free_attitude", lambda t: jd.torque_free_attitude(*host[:3], t))):
-        times = []
-        for n in (201, 205, 210, 215, 220):
-            t = np.linspace(0.0, 20.0, n)
-            start = time.perf_counter()
-            jax.block_until_ready(fn(t))
-            times.append(time.perf_counter() - start)
-        out[name]["new_length_s"] = statistics.median(times)
+        out[name]["new_length_s"] = _new_length_s(fn, 20.0)
     out["torque_free_attitude"]["new_length_over_compile"] = (
         out["torque_free_attitude"]["new_length_s"] / compile_s)
     return out
