@@ -56,6 +56,39 @@ def test_posterior_agrees_with_gauss_newton_where_it_holds():
     assert np.allclose(draws.std(0), std, rtol=0.3), (draws.std(0), std)
 
 
+def test_a_stuck_chain_is_run_again_from_the_optimum(monkeypatch):
+    """A chain that accepts almost none of its proposals is run once more, from the optimum
+    with a key of its own, and said in the diagnostics. Every chain is made to count as stuck
+    (the bound of acceptance above 1): each is run again, its draws replace its first run's,
+    they are still a sample of the posterior (as the Gauss-Newton intervals, which hold on
+    this body), and the chains still stuck are warned about."""
+    from jaxdyn._identify import _posterior
+
+    moments = np.array([0.6, 0.8, 1.0])
+    w0 = np.array([0.7, 0.2, 0.6])
+    ts = np.linspace(0.0, 8.0, SAMPLES)
+    data = euler_rates(np.diag(moments), w0, ts)
+    data = data + 1e-3 * np.random.default_rng(7001).normal(size=data.shape)
+
+    def fit():
+        return jd.fit(jd.Scene(jd.RigidBody(moments)), ts, {"omega": data}, **FIT_BODY,
+                      restarts=1, horizons=(1.0,), y0={"omega": jnp.asarray(w0)},
+                      **POSTERIOR, key=3)
+
+    first = fit()
+    assert first.posterior_diagnostics["restarted"] == []
+    monkeypatch.setattr(_posterior, "ACCEPTANCE_MIN", 1.01)
+    with pytest.warns(RuntimeWarning, match=r"chain\(s\) \[0, 1, 2, 3\] accepted almost none"):
+        again = fit()
+    assert again.posterior_diagnostics["restarted"] == [0, 1, 2, 3]
+    draws = np.asarray(again.posterior["inertia.principal_moments"])[:, :2]
+    assert not np.allclose(draws, np.asarray(first.posterior["inertia.principal_moments"])[:, :2])
+    value = np.asarray(first.values["inertia.principal_moments"])[:2]
+    std = np.asarray(first.std["inertia.principal_moments"])[:2]
+    assert np.all(np.abs(draws.mean(0) - value) < 0.5 * std), (draws.mean(0), value, std)
+    assert np.allclose(draws.std(0), std, rtol=0.3), (draws.std(0), std)
+
+
 def _shape(tensors):
     """The five independent entries of the normalised second-moment tensor `M / tr M`,
     `M = tr(I)/2 - I`: linear coordinates of the body's shape."""

@@ -275,18 +275,38 @@ def sample(problem, u, free, u_start, ts, data, weights, s2, cov, key, summaries
     keys = jax.random.split(k_chains, chains)
     static = dict(draws=per_chain, warmup=warmup)  # (the compiled program ignores their values)
     if jax.config.jax_disable_jit:  # (no compiled program: each chain run as Python)
-        runs = [_chain(*common, start, k, **static) for start, k in zip(starts, keys)]
+        def run(starts, keys):
+            return [_chain(*common, start, k, **static) for start, k in zip(starts, keys)]
     else:
         chain = _chain.lower(*common, starts[0], keys[0], **static).compile()
-        with concurrent.futures.ThreadPoolExecutor(chains) as pool:
-            runs = list(pool.map(
-                lambda start, k: jax.block_until_ready(chain(*common, start, k, **static)),
-                starts, keys))
+
+        def run(starts, keys):
+            with concurrent.futures.ThreadPoolExecutor(len(keys)) as pool:
+                return list(pool.map(
+                    lambda start, k: jax.block_until_ready(chain(*common, start, k, **static)),
+                    starts, keys))
+    runs = run(starts, keys)
+    # A chain that accepted almost none of its proposals (its step size adapted to a region
+    # where NUTS cannot move, as a dispersed start next to the flat plate) is run again once,
+    # from the optimum with a key of its own; its first run is discarded and the restart is
+    # said in the diagnostics (`"restarted"`). On the nearly flat plate of
+    # `tests/test_posterior.py` (4 chains of 50 draws), whether a chain sticks is chaotic in
+    # the fit's round-off: with a variant of the fit's damping 2 of 48 chains (keys 1-12)
+    # stuck at acceptances of about 0.02, and the test's key among them (28 Nov 2026); with
+    # the fit of 29 Nov 2026, none of 160 (keys 1-40; the lowest acceptance 0.58). A chain
+    # that is stuck again is kept, and warned about.
+    stuck = [i for i, r in enumerate(runs) if not float(np.mean(r[1])) >= ACCEPTANCE_MIN]
+    if stuck:
+        again = run([w[index]] * len(stuck),
+                    [jax.random.fold_in(keys[i], 1) for i in stuck])
+        for i, r in zip(stuck, again):
+            runs[i] = r
     ws, acceptance, divergent, steps, energy, deep, warm_steps = (
         jnp.stack(x) for x in zip(*runs))
     names = [c for name, m in zip(sampled.names, sampled.maps) for c in m.components(name)]
     report = diagnostics(np.asarray(ws)[:, :, index], energy, acceptance, divergent, steps,
                          deep, warm_steps, [names[i] for i in index])
+    report["restarted"] = stuck
     flat = ws.reshape(-1, ws.shape[-1])[:draws]
     out = jax.tree.map(np.asarray, jax.vmap(lambda x: summaries(sampled, x, free))(flat))
     warn_on_diagnostics(report)
