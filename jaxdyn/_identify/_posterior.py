@@ -291,10 +291,11 @@ def sample(problem, u, free, u_start, ts, data, weights, s2, cov, key, summaries
     # from the optimum with a key of its own; its first run is discarded and the restart is
     # said in the diagnostics (`"restarted"`). On the nearly flat plate of
     # `tests/test_posterior.py` (4 chains of 50 draws), whether a chain sticks is chaotic in
-    # the fit's round-off. With this fit none of 48 chains stuck (keys 1-12); with two
-    # variants of its damping (measured and not kept), 2 of 48 stuck at acceptances of about
-    # 0.02, the test's key among them (28 Nov 2026), and none of 160 (keys 1-40, 29 Nov 2026).
-    # A chain that is stuck again is kept, and warned about.
+    # the fit's round-off, and in the machine's: with this fit none of 48 chains stuck (keys
+    # 1-12); with Nielsen's damping in the fit (measured and not kept), 2 of 48 stuck at
+    # acceptances of about 0.02, the test's key among them (28 Nov 2026), and on another
+    # machine none of the same 48 (29 Nov 2026; none of 160 with Marquardt's damping). A
+    # chain that is stuck again is kept, and warned about.
     stuck = [i for i, r in enumerate(runs) if not float(np.mean(r[1])) >= ACCEPTANCE_MIN]
     if stuck:
         again = run([w[index]] * len(stuck),
