@@ -26,7 +26,7 @@ from ._scene import Scene
 from ._simulate import _prepare_run, _simulate, check_tolerances
 from ._solution import Trajectory
 from ._tolerance import FLOOR, ScaledPIDController
-from ._validation import ParameterError, device_array
+from ._validation import ParameterError, device_array, key_from_seed
 
 MODES = ("adaptive", "lockstep", "vmap")
 _OK = (STATUS.index("completed"), STATUS.index("event"))
@@ -688,7 +688,7 @@ def _resolve(scene, y0, t1, *, n, key, vary, parameters, t0, ts, observe, keep, 
                 f"({', '.join(switching)}); use mode='vmap'")
         tableau(solver)
     if isinstance(key, int | np.integer):
-        key = jax.random.key(int(key))
+        key = key_from_seed(key)
     return _Inputs(
         scene=scene, targets=targets, y_single=y_single, y_batch=y_batch, p_single=p_single,
         p_batch=p_batch, n=n, key=key, t0=t0, t1=t1, ts=ts, solver=solver, rtol=rtol,

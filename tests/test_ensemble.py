@@ -483,3 +483,24 @@ def test_compacting_the_batch_changes_no_trajectory():
     assert set(np.asarray(whole.status).tolist()) >= {1, 2, 5}  # events, max_steps, invalid
     for a, b in zip(jax.tree.leaves(whole), jax.tree.leaves(compacted)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+@pytest.mark.parametrize("seed", [0, 7, 2**31 - 1, 2**32 + 5, 2**62 + 3, -1, -(2**40), -(2**63)])
+def test_an_integer_key_is_jaxs_key_of_that_seed(seed):
+    """An integer `key=` is made on the host (no program compiled for it): the same key as
+    `jax.random.key(seed)`, data and draws, for seeds past 32 bits and negative ones; and an
+    ensemble given the seed draws what it draws given JAX's key."""
+    from jaxdyn._validation import key_from_seed
+
+    ours, jaxs = key_from_seed(seed), jax.random.key(seed)
+    assert ours.dtype == jaxs.dtype and ours.shape == jaxs.shape == ()
+    np.testing.assert_array_equal(jax.random.key_data(ours), jax.random.key_data(jaxs))
+    np.testing.assert_array_equal(jax.random.normal(ours, (4,)), jax.random.normal(jaxs, (4,)))
+    if seed == 2**32 + 5:  # (one ensemble: the seed reaches the draws through `ensemble`)
+        kw = dict(n=8, vary={"omega[0]": jd.Normal(0.0, 1e-3)})
+        a = jd.ensemble(FREE, Y0, 1.0, key=seed, **kw)
+        b = jd.ensemble(FREE, Y0, 1.0, key=jaxs, **kw)
+        assert a.values.keys() == b.values.keys()
+        for name in a.values:
+            np.testing.assert_array_equal(np.asarray(a.values[name]), np.asarray(b.values[name]))
+        assert not np.all(np.asarray(a.values["omega"])[:, 0] == 0.0)  # (the draws vary)
