@@ -296,9 +296,9 @@ def sample(problem, u, free, u_start, ts, data, weights, s2, cov, key, summaries
     # acceptances of about 0.02, the test's key among them (28 Nov 2026), and on another
     # machine none of the same 48 (29 Nov 2026; none of 160 with Marquardt's damping). A
     # chain that is stuck again is kept, and warned about.
-    stuck = [i for i, r in enumerate(runs) if not float(np.mean(r[1])) >= ACCEPTANCE_MIN]
+    stuck = _stuck([float(np.mean(r[1])) for r in runs])
     if stuck:
-        again = run([w[index]] * len(stuck),
+        again = run([np.asarray(w)[index]] * len(stuck),
                     [jax.random.fold_in(keys[i], 1) for i in stuck])
         for i, r in zip(stuck, again):
             runs[i] = r
@@ -314,6 +314,12 @@ def sample(problem, u, free, u_start, ts, data, weights, s2, cov, key, summaries
     return out, report
 
 
+def _stuck(acceptance):
+    """The chains whose mean acceptance rates `acceptance` are below `ACCEPTANCE_MIN` (or not
+    a number): stuck."""
+    return [i for i, a in enumerate(acceptance) if not a >= ACCEPTANCE_MIN]
+
+
 def warn_on_diagnostics(report):
     """The warnings of `fit(posterior=...)` on its chains' diagnostics (`diagnostics`): the
     chains disagree (split R-hat), a chain is stuck (acceptance), or many draws reached
@@ -327,8 +333,7 @@ def warn_on_diagnostics(report):
             "the draws are not yet a sample of the posterior. Sample longer (larger warmup= "
             "and posterior=), or compare with the Gauss-Newton intervals (FitResult.std).",
             RuntimeWarning)
-    stuck = {i: round(a, 3) for i, a in enumerate(report["acceptance"])
-             if not a >= ACCEPTANCE_MIN}
+    stuck = {i: round(report["acceptance"][i], 3) for i in _stuck(report["acceptance"])}
     if stuck:
         # (The split R-hat can miss it: a chain that hardly moves has almost no spread of
         # its own.)
