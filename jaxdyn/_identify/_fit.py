@@ -495,10 +495,12 @@ def _uncertainty(problem, u, free, R, rss, n_obs):
         undetermined = ((on_fixed > np.sqrt(eps) * np.max(np.abs(g)))
                         | (on_null > np.sqrt(eps) * scale[:, 0]))
         sd = np.where(undetermined, np.nan, np.sqrt(var))
-        std[key] = jnp.asarray(sd.reshape(values[key].shape).astype(values[key].dtype))
+        std[key] = jax.device_put(sd.reshape(values[key].shape).astype(values[key].dtype))
     # `sv` and `vt`: the conditioning of the free columns scaled to unit norm (a tiny singular
     # value is a combination of components that the data do not determine).
-    return jnp.asarray(cov), jnp.asarray(sampling_cov), values, std, jnp.asarray(s2), sv, vt
+    # (Put on the device from NumPy: `jnp.asarray` compiles a program per shape.)
+    return (jax.device_put(cov), jax.device_put(sampling_cov), values, std, jax.device_put(s2),
+            sv, vt)
 
 
 @stored_filter_jit

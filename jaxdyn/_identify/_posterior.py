@@ -155,8 +155,19 @@ def _mass_and_starts(G, cov, v0, key, chains):
 
 
 @eqx.filter_jit
-def _chain(sampled, w, free_index, w_start, free, ts, data, weights, s2, inverse_mass, start,
-           key, *, draws, warmup):
+def _chain(*args, draws, warmup):
+    """`draws` NUTS draws of one chain (`_chain_in_standard_promotion`), traced under JAX's
+    standard dtype promotion (blackjax's code promotes implicitly) whatever the caller's: under
+    `jax_numpy_dtype_promotion="strict"` outside, the functions traced both inside and outside
+    the chain's scan were lowered twice (12867 lines of StableHLO against 11132 for the same
+    chain), so a process in either mode compiled its own program where the other's, in JAX's
+    persistent cache, would have served (`tests/` run strict, the notebooks standard)."""
+    with jax.numpy_dtype_promotion("standard"):
+        return _chain_in_standard_promotion(*args, draws=draws, warmup=warmup)
+
+
+def _chain_in_standard_promotion(sampled, w, free_index, w_start, free, ts, data, weights, s2,
+                                 inverse_mass, start, key, *, draws, warmup):
     """`draws` NUTS draws of one chain of the free components of `w` (the others fixed) from
     `start`, with each draw's acceptance rate, divergence, leapfrog steps and energy, and
     the leapfrog steps of each warm-up step."""
@@ -191,9 +202,8 @@ def _chain(sampled, w, free_index, w_start, free, ts, data, weights, s2, inverse
     da = da_init(jnp.asarray(1.0, start.dtype))
     keys = jnp.concatenate([jax.random.split(k_warm, warmup), jax.random.split(k_draw, draws)])
     warming = jnp.arange(warmup + draws) < warmup
-    with jax.numpy_dtype_promotion("standard"):
-        _, (vs, *out) = jax.lax.scan(one_step, (nuts(1.0).init(start), da, da_final(da)),
-                                     (keys, warming))
+    _, (vs, *out) = jax.lax.scan(one_step, (nuts(1.0).init(start), da, da_final(da)),
+                                 (keys, warming))
     warm_steps = out[2][:warmup]
     vs, out = vs[warmup:], [x[warmup:] for x in out]
     return (jax.vmap(full)(vs), *out, warm_steps)

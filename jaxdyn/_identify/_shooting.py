@@ -46,6 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._stored_jit import stored_filter_jit
+from .._validation import device_array
 from ._parameterisation import Unconstrained, UnitQuaternion
 
 _CONTINUITY = 10.0  # weight of a continuity defect, relative to its segment's data
@@ -141,7 +142,7 @@ def layout(problem, scene) -> tuple[Layout, tuple] | None:
         m = maps.get(n) if n in problem.names else None
         m = m if m is not None else (UnitQuaternion() if rot else Unconstrained())
         width = 3 if rot else int(np.prod(shape))
-        bound = m.bind(jnp.ones(shape) / np.sqrt(max(np.prod(shape), 1)))
+        bound = m.bind(np.ones(shape) / np.sqrt(max(np.prod(shape), 1)))
         if bound.size() != width:
             return None
         templates.append(m)
@@ -212,6 +213,7 @@ def linearise(problem, lay, p, s, smaps, seg_ts, seg_data, seg_w, has_next, wc, 
     return jax.lax.map(one, xs, batch_size=batch)
 
 
+@jax.jit
 def _weighted(B, w):
     """Blocks `B` with the continuity residuals weighted `w` times more (a scalar, or one
     factor per component of a defect): the defects and their Jacobians scale alike."""
@@ -348,7 +350,7 @@ def identifiable(B, s0_free, tol) -> np.ndarray:
     seen directly by every segment's data, looked like zero columns and were held at their
     starting values. The segments' own columns are not propagated across segments.)"""
     n_p = B["P"].shape[2]
-    H, *_ = condense(B, jnp.ones(n_p, bool), s0_free)
+    H, *_ = condense(B, np.ones(n_p, bool), s0_free)
     N = np.asarray(B["N"])
     data = np.concatenate([np.diag(N[:, :n_p, :n_p].sum(axis=0)),
                            np.diag(N[0, n_p:, n_p:]) * np.asarray(s0_free)])
@@ -464,10 +466,13 @@ class Shooting:
         # is rejected early (every segment of a batch waits for the slowest).
         self.max_steps = min(problem.max_steps, _SEGMENT_STEPS)
         self.lay, self.templates, self.seg, self.n_obs = lay, templates, seg, n_obs
-        self.seg_ts = jnp.asarray(seg.ts)
-        self.seg_data = {k: jnp.asarray(v) for k, v in seg.data.items()}
-        self.seg_w = jnp.asarray(seg.weights)
-        self.has_next = jnp.asarray(seg.has_next)
+        # (The host's work between the compiled programs is NumPy's: each eager `jax.numpy`
+        # operation is a program of its own, compiled on its first call in a process; a first
+        # fit by multiple shooting compiled about 140 of them, 2 s of its 11 s.)
+        self.seg_ts = device_array(seg.ts, _canonical(seg.ts))
+        self.seg_data = {k: device_array(v, _canonical(v)) for k, v in seg.data.items()}
+        self.seg_w = device_array(seg.weights, _canonical(seg.weights))
+        self.has_next = device_array(seg.has_next, _canonical(seg.has_next))
         n_p, n_s = sum(lay.p_sizes), sum(lay.s_sizes)
         # u (the problem's unknowns) as components of z = (p, s_0).
         p_off = dict(zip(lay.p_names, np.cumsum((0,) + lay.p_sizes)[:-1]))
@@ -482,7 +487,7 @@ class Shooting:
         self.z_of_u = np.asarray(index)
         self.p_of_u = self.z_of_u[self.z_of_u < n_p]
         self.u_is_p = self.z_of_u < n_p
-        self.s0_free = jnp.asarray(s0_free)
+        self.s0_free = s0_free
         self.n_p, self.n_s = n_p, n_s
         S, M = seg.weights.shape
         width = sum(int(np.prod(v.shape[2:])) for v in seg.data.values())
@@ -502,19 +507,22 @@ class Shooting:
         from ._fit import _BIAS, _scene_and_state
 
         scene, y0 = _scene_and_state(problem, u)
-        starts = self.seg_ts[:, 0]
+        starts = np.asarray(self.seg.ts[:, 0], _canonical(self.seg.ts))
         steps = max(problem.max_steps, 2000 * self.segments)
         ys, ok = _simulate_to(problem, scene, y0, starts, max_steps=steps)
+        y0 = {n: np.asarray(v) for n, v in y0.items()}
         if not bool(ok):
-            ys = jax.tree.map(lambda v: jnp.broadcast_to(v, (self.segments,) + v.shape), y0)
-        ys = {n: v.at[0].set(y0[n]) for n, v in ys.items()}
-        values = problem.values(u)
-        for n in ys:
+            ys = {n: np.broadcast_to(v, (self.segments,) + v.shape) for n, v in y0.items()}
+        ys = {n: np.array(v) for n, v in ys.items()}  # (writable copies)
+        biases = [n for n in ys if n in self.seg_data and _BIAS + n in problem.names]
+        values = _problem_values(problem, u) if biases else {}
+        for n, v in ys.items():
+            v[0] = y0[n]
             if n in self.seg_data:
-                d = self.seg_data[n][:, 0]
-                if _BIAS + n in values:
-                    d = d - values[_BIAS + n]
-                ys[n] = ys[n].at[1:].set(d[1:].astype(ys[n].dtype))
+                d = np.asarray(self.seg_data[n])[:, 0]
+                if n in biases:
+                    d = d - np.asarray(values[_BIAS + n])
+                v[1:] = d[1:]
         return ys
 
     def series(self, problem, r) -> dict[str, np.ndarray]:
@@ -539,10 +547,11 @@ class Shooting:
         if resume is None:
             ys = self.anchor(problem, u)
             smaps, s = bind_segments(self.templates, self.lay.s_names, ys)
-            p = jnp.asarray(u)[self.p_of_u]
+            s = np.asarray(s)
+            p = np.asarray(u, _canonical(u))[self.p_of_u]
         else:
             p, s, smaps = resume
-        ones = jnp.ones(self.n_s, p.dtype)
+        ones = np.ones(self.n_s, p.dtype)
         B = self._lin(problem, p, s, smaps, ones)
         # A segment whose integration fails from its starting state has no residuals: no
         # step of the lifted problem can start (and its weights are undefined).
@@ -557,7 +566,7 @@ class Shooting:
                 f"its starting state: its step budget ({self.max_steps} steps per segment) "
                 f"ran out or its state left the finite numbers; loosen rtol, or fit fewer "
                 f"samples")
-        wc = jnp.asarray(continuity_weights(B, self.lay), p.dtype)
+        wc = np.asarray(continuity_weights(B, self.lay), p.dtype)
         return p, s, smaps, wc, _weighted(B, wc)
 
     def free(self, problem, u, tol):
@@ -566,8 +575,8 @@ class Shooting:
         return identifiable(B, self.s0_free, tol)[self.z_of_u]
 
     def u_of(self, p, s, u_like):
-        z = jnp.concatenate([p, s[0]])
-        return z[self.z_of_u].astype(u_like.dtype)
+        z = np.concatenate([p, s[0]])
+        return jax.device_put(z[self.z_of_u].astype(u_like.dtype))
 
     def integration_variance(self, problem) -> float:
         """The variance of a weighted residual that the integration's error alone gives:
@@ -601,6 +610,7 @@ class Shooting:
                 k -= 1
                 break
             dp, ds, predicted = lm_step(B, lam, p_free, self.s0_free)
+            dp, ds = np.asarray(dp), np.asarray(ds)
             p1, s1 = p + dp, s + ds
             B1 = self._lin(problem, p1, s1, smaps, wc)
             loss1 = _lifted(B1)
@@ -637,7 +647,7 @@ class Shooting:
         normal matrix `H` of `u`, the sums of squares by output and the segment states
         (`lifted`, to resume from)."""
         free = np.asarray(free)
-        p_free = jnp.asarray(free[self.u_is_p])
+        p_free = free[self.u_is_p]
         p, s, smaps, wc, B = self.start(problem, u, resume)
         # Continuation in the continuity weight: nearly independent segments first (each
         # prediction starts in phase with its data: the basin of a short record), then tied.
@@ -647,7 +657,7 @@ class Shooting:
         history, iterations, converged = [], 0, not stages
         for i, factor in enumerate(stages):
             if i == 0:
-                B = _weighted(B, jnp.asarray(factor, wc.dtype))
+                B = _weighted(B, np.asarray(factor, wc.dtype))
             else:
                 B = self._lin(problem, p, s, smaps, wc * factor)
             p, s, B, k, converged = self._levenberg_marquardt(
@@ -666,7 +676,7 @@ class Shooting:
         # whose defects are far below the data's noise, with its own covariance.
         closed = False
         dof = max(self.n_obs - int(np.sum(free)), 1)
-        variance = lambda B: float(jnp.sum(B["ss"])) / dof  # noqa: E731 (of the residuals)
+        variance = lambda B: float(np.sum(np.asarray(B["ss"]))) / dof  # noqa: E731 (residuals')
         # (On noise-free data the residuals are the integration's error: a standard
         # deviation is never taken below what that error alone gives.)
         lifted_optimum = (p, s, B)
@@ -674,7 +684,7 @@ class Shooting:
         previous = _HOPELESS**2 * s2
         for _ in range(8):
             dp, ds, metric = condensed_step(B, p_free, self.s0_free)
-            metric = float(metric)
+            dp, ds, metric = np.asarray(dp), np.asarray(ds), float(metric)
             # Longer than the last step, or a first step `_HOPELESS` standard deviations
             # long: the condensed linearisation has no precision left.
             if not metric < previous:
@@ -697,7 +707,8 @@ class Shooting:
             # residual variances to the data's sum of squares at most; a closed point that
             # explains the data worse came from a linearisation without precision.
             constraints = (self.segments - 1) * self.n_s
-            closed = (float(jnp.sum(B["ss"])) - float(jnp.sum(lifted_optimum[2]["ss"]))
+            closed = (float(np.sum(np.asarray(B["ss"])))
+                      - float(np.sum(np.asarray(lifted_optimum[2]["ss"])))
                       <= 2 * max(constraints, 1) * s2)
         if closed:
             H, *_ = condense(B, p_free, self.s0_free)
@@ -712,25 +723,36 @@ class Shooting:
             p, s, B, k, closed = self._levenberg_marquardt(
                 problem, p, s, smaps, wc, B, p_free, tol, max_iter, tick, history, floor)
             iterations += k
-            cov = lifted_covariance(B, p_free, self.s0_free)
-            fixed = ~jnp.concatenate([p_free, self.s0_free])
-            H = jnp.where(fixed[:, None] | fixed[None, :], 0.0,
-                          jnp.linalg.inv(cov + jnp.diag(fixed.astype(cov.dtype))))
-        ss = np.asarray(jnp.sum(B["ss"], axis=0))
+            cov = np.asarray(lifted_covariance(B, p_free, self.s0_free))
+            fixed = ~np.concatenate([p_free, self.s0_free])
+            H = np.where(fixed[:, None] | fixed[None, :], 0.0,
+                         np.linalg.inv(cov + np.diag(fixed.astype(cov.dtype))))
+        ss = np.asarray(B["ss"]).sum(axis=0)
         series = self.series(problem, B["r"])  # (the data residuals at the last point)
         data_loss = 0.5 * float(ss.sum())
-        u_fit = self.u_of(p, s, jnp.asarray(u))
-        Hu = jnp.asarray(H)[self.z_of_u][:, self.z_of_u]
+        u_fit = self.u_of(p, s, np.asarray(u, _canonical(u)))
+        Hu = np.asarray(H)[np.ix_(self.z_of_u, self.z_of_u)]
         return {"loss": data_loss if np.isfinite(data_loss) else np.inf, "u": u_fit,
                 "converged": bool(converged and closed), "iterations": iterations,
                 "history": np.asarray(history), "stages": (0,), "H": Hu, "ss": ss,
                 "series": series, "lifted": (p, s, smaps),
-                "defect": float(jnp.max(jnp.abs(B["d"])))}
+                "defect": float(np.max(np.abs(np.asarray(B["d"]))))}
 
 
 def _max_abs(a, b) -> float:
-    return float(jnp.maximum(jnp.max(jnp.abs(a)), jnp.max(jnp.abs(b))))
+    return float(max(np.max(np.abs(a)), np.max(np.abs(b))))
 
 
 def _lifted(B) -> float:
-    return 0.5 * float(jnp.sum(B["ss"]) + jnp.sum(B["d"] ** 2))
+    return 0.5 * float(np.sum(np.asarray(B["ss"])) + np.sum(np.asarray(B["d"]) ** 2))
+
+
+def _canonical(x):
+    """The dtype JAX gives the NumPy array `x` (float64 to float32 without 64-bit mode)."""
+    return jax.dtypes.canonicalize_dtype(np.asarray(x).dtype)
+
+
+@stored_filter_jit
+def _problem_values(problem, u):
+    """`problem.values(u)` as one compiled program (eager, each of its operations is one)."""
+    return problem.values(u)
