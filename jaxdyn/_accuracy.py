@@ -16,6 +16,7 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import diffrax as dfx
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -215,9 +216,22 @@ def _timed(fn, repeats: int):
     return out, first, statistics.median(times)
 
 
+@eqx.filter_jit
+def _invariants_over(scene, ts, ys):
+    """The scene's invariants at each sample, as one compiled program (eager under `vmap`,
+    each of their operations was a program of its own)."""
+    return jax.vmap(scene.invariants)(ts, ys)
+
+
+@eqx.filter_jit
+def _natural_scales(scene, t0, t1, y0):
+    """`scene.natural_scales`, as one compiled program."""
+    return scene.natural_scales(t0, t1, y0)
+
+
 def _drift(problem: Problem, traj) -> dict[str, float]:
     valid = np.asarray(traj.valid)
-    inv = jax.vmap(problem.scene.invariants)(traj.ts, traj.ys)
+    inv = _invariants_over(problem.scene, traj.ts, traj.ys)
     out = {}
     for name in problem.scene.conserved:
         v = np.asarray(inv[name])[valid]
@@ -301,8 +315,8 @@ def _scipy(problem: Problem, ref, repeats: int, budget: float, stopped: dict) ->
     shapes = problem.scene.state_shapes()
     # The same error control as jaxdyn's: each component's floor is 1% (FLOOR) of rtol times
     # its natural scale.
-    scales, _ = problem.scene.natural_scales(jnp.zeros(()), jnp.asarray(problem.t1),
-                                             problem.y0)
+    scales, _ = _natural_scales(problem.scene, np.zeros(()), np.asarray(problem.t1),
+                                problem.y0)
     scale = _flat(problem.scene, {k: jnp.broadcast_to(v, problem.y0[k].shape)
                                   for k, v in scales.items()})
     out = {}
@@ -380,7 +394,7 @@ def drift_series(problem: Problem, settings: dict[str, tuple[Method, dict]] | No
                             **kw)
         except ParameterError:
             continue
-        inv = jax.vmap(problem.scene.invariants)(traj.ts, traj.ys)
+        inv = _invariants_over(problem.scene, traj.ts, traj.ys)
         series = {}
         for key in problem.scene.conserved:
             v = np.asarray(inv[key])

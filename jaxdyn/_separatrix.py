@@ -522,7 +522,8 @@ def trace_separatrices(
     scale = float(_rate_scale(scene, momentum))
     if rtol is None:
         rtol = 1e-10 if dtype == jnp.float64 else 1e-5
-    rates = np.asarray(equilibria.growth_rate)
+    # (`growth_rate` in NumPy: the eager property compiled programs of its own.)
+    rates = np.max(np.real(np.asarray(equilibria.eigenvalues)), axis=-1).clip(min=0)
 
     branches = []
     for s in saddles:
@@ -543,26 +544,19 @@ def trace_separatrices(
             seg = np.linalg.norm(np.diff(w[: end + 1], axis=0), axis=1)
             arc = np.concatenate([[0.0], np.cumsum(seg)])
             t_even = np.interp(np.linspace(0.0, arc[-1], num), arc, ts[: end + 1])
-            omega, h = _evaluate(traj, jnp.asarray(t_even, dtype))
+            omega, h = _evaluate(traj, device_array(t_even, dtype))
             branches.append((omega, h, energies[s], s, sign, t_even[-1], returned,
                              end_saddle if returned else -1))
 
-    if not branches:
-        empty = jnp.zeros((0, num, 3), dtype)
-        return Separatrices(empty, empty, jnp.zeros((0,), dtype), jnp.zeros((0,), int),
-                            jnp.zeros((0,), int), jnp.zeros((0,), dtype),
-                            jnp.zeros((0,), bool), jnp.zeros((0,), int))
-    cols = list(zip(*branches))
+    # (Assembled by NumPy and put on the device: eager `jnp` calls compile a program each.)
+    def column(i, dt, shape=()):
+        values = [np.asarray(b[i]) for b in branches]
+        return device_array(np.stack(values) if values else np.zeros((0, *shape)), dt)
+
     return Separatrices(
-        omega=jnp.stack(cols[0]).astype(dtype),
-        angular_momentum=jnp.stack(cols[1]).astype(dtype),
-        energy=jnp.stack(cols[2]).astype(dtype),
-        saddle=jnp.asarray(cols[3], int),
-        sign=jnp.asarray(cols[4], int),
-        duration=jnp.asarray(cols[5], dtype),
-        returned=jnp.asarray(cols[6], bool),
-        end_saddle=jnp.asarray(cols[7], int),
-    )
+        omega=column(0, dtype, (num, 3)), angular_momentum=column(1, dtype, (num, 3)),
+        energy=column(2, dtype), saddle=column(3, int), sign=column(4, int),
+        duration=column(5, dtype), returned=column(6, bool), end_saddle=column(7, int))
 
 
 # -- critical rotor momenta --------------------------------------------------------------------

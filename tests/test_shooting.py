@@ -166,6 +166,47 @@ def test_multiple_shooting_gives_the_single_shooting_estimate_and_intervals():
         assert np.allclose(multiple.residual_autocorrelation[name], rho, atol=1e-6)
     assert single.systematic == multiple.systematic == ()
 
+    # Between its compiled programs, the lifted Levenberg--Marquardt loop works on the host in
+    # NumPy: an eager `jax.numpy` operation is a program of its own, lowered and compiled on its
+    # first call in every process (a first multiple-shooting fit compiled about 140 of them,
+    # 2-3 s of 11 s). With JAX's caches emptied, the same fit again lowers only the loop's
+    # named programs (jaxdyn's stored programs are kept by jaxdyn: they are not lowered again).
+    jax.clear_caches()
+    again, lowered = _lowering(lambda: jd.fit(scene, ts, data, segments=4, **kwargs))
+    assert again.loss == multiple.loss
+    eager = [name for name in lowered if name not in _LOOP_PROGRAMS]
+    assert lowered and not eager, lowered
+
+
+# The programs of multiple shooting's loop that are plain `jax.jit`s (lowered again once JAX's
+# caches are emptied); anything else lowered is an eager operation.
+_LOOP_PROGRAMS = {"lm_step", "condense", "condensed_step", "lifted_covariance", "_weighted",
+                  "bind_segments"}
+
+
+def _lowering(fn):
+    """`fn()` and the names of the programs JAX lowered meanwhile (from its compile log)."""
+    import logging
+    import re
+
+    names = []
+
+    class Names(logging.Handler):
+        def emit(self, record):
+            found = re.match(r"Finished jaxpr to MLIR module conversion jit\((.*?)\)",
+                             record.getMessage())
+            if found:
+                names.append(found.group(1))
+
+    handler, logger = Names(), logging.getLogger("jax")
+    logger.addHandler(handler)
+    try:
+        with jax.log_compiles(True):
+            out = fn()
+    finally:
+        logger.removeHandler(handler)
+    return out, names
+
 
 def test_lifted_optimum_where_the_defects_cannot_close(monkeypatch):
     """On a record so long that the condensed steps lose their precision (propagated over

@@ -885,11 +885,12 @@ def _setup(scene, ts, data, parameters, initial, y0, sigma, rtol, atol, max_step
         except ParameterError as e:
             raise ParameterError(f"y0: no starting initial state could be built ({e}); "
                                  "pass y0=scene.state(...)") from None
-    y0 = {k: jnp.asarray(v, dtype) for k, v in scene.check_state(y0).items()}
+    # (Put on the device from NumPy: `jnp.asarray` and `jnp.zeros` compile a program each.)
+    y0 = {k: device_array(v, dtype) for k, v in scene.check_state(y0).items()}
     current = scene.parameters()
-    starting = {**{k: jnp.asarray(current[k], dtype) for k in parameters},
+    starting = {**{k: device_array(current[k], dtype) for k in parameters},
                 **{k: y0[k] for k in initial},
-                **{_BIAS + k: jnp.zeros(shapes[k], dtype) for k in bias}}
+                **{_BIAS + k: jax.device_put(np.zeros(shapes[k], dtype)) for k in bias}}
     fitted = {**parameters, **initial, **{_BIAS + k: m for k, m in bias.items()}}
     maps = tuple(m.bind(starting[k]) for k, m in fitted.items())
     names = tuple(fitted)
@@ -1366,7 +1367,7 @@ def fit(
             over the samples `(N, width)`."""
             if "H" in best:  # multiple shooting's own normal matrix
                 sums = dict(zip(outputs, (float(x) for x in best["ss"])))
-                return _root(best["H"]), jnp.asarray(sum(sums.values())), sums, best["series"]
+                return _root(best["H"]), np.sum(list(sums.values())), sums, best["series"]
             r, J = best["rJ"] or _jacobian(problem, u, ts_p, obs_p, weights)
             series = _series_by_output(np.asarray(r), obs, ts_p.size, problem.kinds)
             sums = {k: float(np.sum(v**2)) for k, v in series.items()}  # (padding weighs 0)
