@@ -18,7 +18,7 @@ from ._outcome import NAMES, Outcome, SimulationError
 from ._padded import over_padded_times
 from ._programs import StoredProgram
 from ._scene import Scene
-from ._validation import ParameterError, as_float_array, is_concrete
+from ._validation import ParameterError, as_float_array, is_concrete, on_host
 
 
 class MergedInterpolation(eqx.Module):
@@ -118,7 +118,9 @@ class Trajectory(eqx.Module):
     @property
     def valid(self) -> Bool[Array, " times"]:
         """True for saved times reached before the run ended."""
-        return jnp.isfinite(self.ts) & (self.ts <= self.t_final)
+        xp, ts, t_final = on_host(self.ts, self.t_final)  # (NumPy where concrete: eager
+        valid = xp.isfinite(ts) & (ts <= t_final)  # `jnp` compiled three programs)
+        return jax.device_put(valid) if xp is np else valid
 
     @property
     def output_names(self) -> tuple[str, ...]:

@@ -193,6 +193,29 @@ def test_safe_norm_value_and_gradient():
     assert float(norm(np.zeros(3))) == 0.0
 
 
+def test_a_concrete_vector_is_normalised_on_the_host_as_unit_does_it():
+    """`_validation.nonzero_unit` (the checks that normalise a given quaternion or axis)
+    normalises a concrete vector by NumPy on the host, where `unit`'s eager operations
+    compiled a dozen programs: the same vector to a unit in the last place (float64 and
+    float32, integers, components near overflow and underflow, rows), the same dtype."""
+    from jaxdyn._rotations import unit
+    from jaxdyn._validation import ParameterError, nonzero_unit
+
+    rng = np.random.default_rng(8)
+    cases = [rng.normal(size=4), rng.normal(size=(6, 3)), np.array([1e300, -2e300, 2e300]),
+             np.array([3e-300, 4e-300, 0.0]), np.array([1, 2, 2]),
+             rng.normal(size=3).astype(np.float32), [0.0, 0.6, 0.8]]
+    for x in cases:
+        got, want = nonzero_unit("v", x), unit(jnp.asarray(x))
+        assert isinstance(got, jax.Array) and got.dtype == want.dtype
+        eps = np.finfo(want.dtype).eps
+        np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=2 * eps, atol=0)
+        np.testing.assert_allclose(np.linalg.norm(np.asarray(got, float), axis=-1), 1.0,
+                                   rtol=4 * eps)
+    with pytest.raises(ParameterError, match="must be nonzero"):
+        nonzero_unit("v", [[1.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
+
+
 #
 # Quaternions
 #
