@@ -33,6 +33,13 @@
   way jaxdyn saved before (the sample buffer in the solver state, which diffrax copies at
   every step: `O(samples x steps)`; up to 1e4 samples), in the same process.
 
+- **Targets**: issue 19's targets that the sections run measured, each with its value, its
+  bound and whether it is met (`targets`): `simulate` and derived outputs against their
+  references, the warm `jaxdyn run` against importing what it needs (`import jaxdyn` itself
+  loads its names on first use, so the bound is the import of the integration stack), the
+  warm `jaxdyn fit` under 3 s, `import jaxdyn` against `import jax`, and with `--baseline`
+  each cold command against the code before. All ratios come from this one run.
+
 Prints one JSON object. Run: `python benchmarks/latency.py [--quick]`; the commands against
 the code before issue 19 (ebc494a, its own virtual environment):
 `python benchmarks/latency.py --only commands --rounds 3 --baseline /path/to/venv/bin/python`.
@@ -457,6 +464,35 @@ def samples(quick):
     return out
 
 
+def targets(result: dict) -> dict:
+    """Issue 19's targets measured by the sections in `result`: value, bound, met."""
+    out = {}
+
+    def target(name, value, bound, below=True):
+        out[name] = {"value": value, "bound": bound,
+                     "met": bool(value <= bound if below else value >= bound)}
+
+    calls = result.get("calls", {})
+    for problem in ("free_body", "falling_rod"):
+        if problem in calls:
+            target(f"simulate_call_over_hand_jit_{problem}",
+                   calls[problem]["simulate_over_hand"], 1.5)
+            target(f"derived_output_over_program_{problem}",
+                   calls[problem]["output_over_program"], 2.0)
+    imports, commands = result.get("imports", {}), result.get("commands", {})
+    if imports:
+        target("import_jaxdyn_over_import_jax", imports["jaxdyn_over_jax"], 1.5)
+    if imports and "run" in commands:
+        target("warm_run_over_import_of_integration_stack",
+               commands["run"]["warm_s"] / imports["jaxdyn_integration_s"], 1.5)
+    if "fit" in commands:
+        target("warm_fit_s", commands["fit"]["warm_s"], 3.0)
+    for name, row in commands.items():
+        if isinstance(row, dict) and "cold_over_baseline_cold" in row:
+            target(f"cold_{name}_over_before", row["cold_over_baseline_cold"], 0.5)
+    return out
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--quick", action="store_true",
@@ -481,6 +517,7 @@ def main():
     for name, section in sections.items():
         if args.only in (None, name):
             result[name] = section()
+    result["targets"] = targets(result)
     result["wall_s"] = time.perf_counter() - t0
     print(json.dumps(result, indent=2))
 
