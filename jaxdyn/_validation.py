@@ -54,7 +54,13 @@ def as_float_array(field: str, value, shape: tuple[int, ...] | None = None, dtyp
             raise ParameterError(message(field, value, "expected a number or an array")) from e
         if np_value.dtype.kind not in "biuf":
             raise ParameterError(message(field, value, "expected real numbers"))
-        convert = np.array if host else jnp.asarray  # (`np.array` copies)
+        def convert(a, dtype=None):
+            # A copy (`np.array`): the caller's own array is never the one used. Off the host,
+            # it is put on the device, which compiles nothing (`jnp.asarray` compiled a
+            # conversion program for each new shape and dtype).
+            copy = np.array(a, dtype=dtype)
+            return copy if host else jax.device_put(copy)
+
         if np_value.dtype.kind == "f" and dtype is None and np_value.dtype != np.float64:
             arr = convert(np_value)  # keep float32/float16 as given
         else:

@@ -34,6 +34,7 @@ from .._validation import (
     finite_check,
     nonnegative_check,
     nonzero_unit,
+    on_host,
     positive_check,
 )
 
@@ -183,15 +184,20 @@ class Wheels(AbstractEffect):
                 f"unknown initial values {sorted(unknown)} for wheels: allowed is speed"
             )
         omega = body_state["omega"]
-        speed = as_float_array("wheels.speed", speed, None, omega.dtype)
-        speed = jnp.broadcast_to(speed, (self.size,)) if speed.ndim == 0 else speed
+        speed = as_float_array("wheels.speed", speed, None, omega.dtype, host=True)
+        if speed.ndim == 0:
+            speed = np.broadcast_to(speed, (self.size,))
         if speed.shape != (self.size,):
             raise ParameterError(f"wheels.speed has shape {speed.shape}: expected ({self.size},)")
-        y = {"momentum": self.inertia * (speed + self.axes @ omega)}
+        # (NumPy on the host where the values are concrete, then put on the device: eager
+        # `jnp` compiled a program for each operation.)
+        xp, inertia, axes, omega_, speed = on_host(self.inertia, self.axes, omega, speed)
+        put = jax.device_put if xp is np else (lambda x: x)
+        y = {"momentum": put(inertia * (speed + axes @ omega_))}
         if self.motor is not None:
-            y["work"] = jnp.zeros((), omega.dtype)
+            y["work"] = put(xp.zeros((), omega.dtype))
         if self.damping is not None:
-            y["dissipated"] = jnp.zeros((), omega.dtype)
+            y["dissipated"] = put(xp.zeros((), omega.dtype))
         return y
 
     def jump_times(self):
