@@ -23,8 +23,9 @@ rates, 6-9 unknowns, CPU):
   (about 76 ms) and is no faster even for the gradient of the scalar loss (2.0 against 1.4 ms).
 - Minimiser: Levenberg--Marquardt from optimistix parts (its damped Newton descent and
   classical trust region), stepped here so that every iteration's loss is recorded. It needs
-  about 40 iterations and 0.07 s for that fit; optax's Adam (200 steps) then L-BFGS reaches the
-  same optimum in about 440 iterations and 1.3 s. Both are available (`method`).
+  about 40 iterations and 0.04-0.08 s for that fit (39 iterations in `benchmarks/identify.py
+  --quick`); optax's Adam (200 steps) then L-BFGS reaches the
+  same optimum in about 420-440 iterations and 0.7-1.3 s. Both are available (`method`).
 - Continuation in the time span (`horizons`): each start is fitted to the first quarter of the
   samples, then half, then all; with it every random start reached the global optimum in our
   trials, without it about half did (oscillatory records have many local minima).
