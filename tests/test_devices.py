@@ -42,6 +42,15 @@ def test_initial_wheel_speed_sets_the_absolute_momentum():
     assert np.allclose(y0["wheels.momentum"], 0.1 * (10.0 + 1.5))
     out = scene.outputs(0.0, y0)
     assert np.allclose(out["angular_momentum"], [0.0, 0.0, 3 * 1.5 + 0.1 * 11.5])
+    # Concrete values are combined on the host; traced ones (under `jit`, `vmap`, `grad`) by
+    # JAX, to the same momentum, and its derivative is the wheel's inertia along the axis.
+    momentum = lambda s: scene.state(omega=[0.0, 0.0, 1.5], **{"wheels.speed": s})[  # noqa: E731
+        "wheels.momentum"]
+    assert isinstance(y0["wheels.momentum"], jax.Array)
+    np.testing.assert_allclose(jax.jit(momentum)(10.0), y0["wheels.momentum"], rtol=1e-15)
+    np.testing.assert_allclose(jax.vmap(momentum)(jnp.array([10.0, 0.0]))[:, 0],
+                               [1.15, 0.15], rtol=1e-15)
+    assert float(jax.grad(lambda s: momentum(s)[0])(10.0)) == pytest.approx(0.1, rel=1e-15)
 
 
 def test_free_wheel_is_a_gyrostat():

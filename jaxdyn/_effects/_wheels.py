@@ -185,14 +185,14 @@ class Wheels(AbstractEffect):
             )
         omega = body_state["omega"]
         speed = as_float_array("wheels.speed", speed, None, omega.dtype, host=True)
-        if speed.ndim == 0:
-            speed = np.broadcast_to(speed, (self.size,))
-        if speed.shape != (self.size,):
-            raise ParameterError(f"wheels.speed has shape {speed.shape}: expected ({self.size},)")
         # (NumPy on the host where the values are concrete, then put on the device: eager
         # `jnp` compiled a program for each operation.)
         xp, inertia, axes, omega_, speed = on_host(self.inertia, self.axes, omega, speed)
         put = jax.device_put if xp is np else (lambda x: x)
+        if speed.ndim == 0:
+            speed = xp.broadcast_to(speed, (self.size,))
+        if speed.shape != (self.size,):
+            raise ParameterError(f"wheels.speed has shape {speed.shape}: expected ({self.size},)")
         y = {"momentum": put(inertia * (speed + axes @ omega_))}
         if self.motor is not None:
             y["work"] = put(xp.zeros((), omega.dtype))

@@ -24,8 +24,8 @@ rates, 6-9 unknowns, CPU):
 - Minimiser: Levenberg--Marquardt from optimistix parts (its damped Newton descent and
   classical trust region), stepped here so that every iteration's loss is recorded. It needs
   about 40 iterations and 0.04-0.08 s for that fit (39 iterations in `benchmarks/identify.py
-  --quick`); optax's Adam (200 steps) then L-BFGS reaches the
-  same optimum in about 420-440 iterations and 0.7-1.3 s. Both are available (`method`).
+  --quick`); optax's Adam (200 steps) then L-BFGS reaches the same optimum in about 420-440
+  iterations and 0.7-1.3 s. Both are available (`method`).
 - Continuation in the time span (`horizons`): each start is fitted to the first quarter of the
   samples, then half, then all; with it every random start reached the global optimum in our
   trials, without it about half did (oscillatory records have many local minima).
