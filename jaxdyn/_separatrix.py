@@ -45,7 +45,7 @@ from ._effects import Rotor
 from ._rigid_body import RigidBody
 from ._scene import Scene
 from ._stored_jit import stored_filter_jit
-from ._validation import ParameterError, as_float_array, device_array
+from ._validation import ParameterError, as_float_array, device_array, on_host
 
 _NUM_STARTS = 64  # Fibonacci points on the momentum sphere; a gyrostat has at most 6 equilibria.
 
@@ -120,8 +120,11 @@ class Equilibria(eqx.Module):
     @property
     def growth_rate(self) -> Float[Array, " n"]:
         r"""$\lambda = \max \operatorname{Re}$ of the eigenvalues: the saddle's rate of departure
-        along its unstable manifold (zero for a centre)."""
-        return jnp.max(jnp.real(self.eigenvalues), axis=-1).clip(min=0)
+        along its unstable manifold (zero for a centre). (NumPy where the eigenvalues are
+        concrete: eager, each `jnp` operation compiled a program.)"""
+        xp, eigenvalues = on_host(self.eigenvalues)
+        rate = xp.max(xp.real(eigenvalues), axis=-1).clip(min=0)
+        return jax.device_put(rate) if xp is np else rate
 
     @property
     def separatrix_energies(self) -> Float[Array, " k"]:
@@ -522,8 +525,7 @@ def trace_separatrices(
     scale = float(_rate_scale(scene, momentum))
     if rtol is None:
         rtol = 1e-10 if dtype == jnp.float64 else 1e-5
-    # (`growth_rate` in NumPy: the eager property compiled programs of its own.)
-    rates = np.max(np.real(np.asarray(equilibria.eigenvalues)), axis=-1).clip(min=0)
+    rates = np.asarray(equilibria.growth_rate)
 
     branches = []
     for s in saddles:

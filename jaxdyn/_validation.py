@@ -153,13 +153,19 @@ def nonzero_unit(field: str, x, axis: int = -1):
         if np.any(zero):
             raise ParameterError(message(field, x, "must be nonzero (it is normalised to a "
                                          "unit vector)"))
-        # Normalised by NumPy on the host, as `unit` does it (scaled by the largest component
-        # first), and put on the device: `unit`'s eager operations compiled a dozen programs.
-        if not np.issubdtype(a.dtype, np.inexact):
-            a = a.astype(jax.dtypes.canonicalize_dtype(np.float64))
-        with np.errstate(invalid="ignore", over="ignore"):  # (non-finite: NaN, as there)
-            big = np.max(np.abs(a), axis=axis, keepdims=True)
-            big = np.where(np.isfinite(big) & (big > 0), big, np.ones((), a.dtype))
-            norm = big * np.sqrt(np.sum((a / big) ** 2, axis=axis, keepdims=True))
-            return jax.device_put(a / norm)
+        return unit_on_host(a, axis)
     return unit(x, axis=axis)
+
+
+def unit_on_host(x, axis: int = -1):
+    """`_rotations.unit(x)` of a concrete `x`, computed by NumPy as `unit` computes it (scaled by
+    the largest component first) and put on the device: `unit`'s eager operations compiled a
+    dozen programs. A zero or non-finite vector gives NaN, as there."""
+    a = np.asarray(x)
+    if not np.issubdtype(a.dtype, np.inexact):
+        a = a.astype(jax.dtypes.canonicalize_dtype(np.float64))
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        big = np.max(np.abs(a), axis=axis, keepdims=True)
+        big = np.where(np.isfinite(big) & (big > 0), big, np.ones((), a.dtype))
+        norm = big * np.sqrt(np.sum((a / big) ** 2, axis=axis, keepdims=True))
+        return jax.device_put(a / norm)

@@ -23,7 +23,7 @@ from .._rotations import (
     quat_multiply,
     quat_normalize,
 )
-from .._validation import ParameterError, is_concrete
+from .._validation import ParameterError, is_concrete, unit_on_host
 
 
 class AbstractParameterisation(eqx.Module):
@@ -369,13 +369,8 @@ class UnitQuaternion(AbstractParameterisation):
     reference: Float[Array, "4"] | None = None
 
     def bind(self, value):
-        if is_concrete(value):  # (a fit's start: NumPy, where each eager operation of
-            # `quat_normalize` would compile a program of its own, a dozen in all)
-            q = np.asarray(value)
-            with np.errstate(invalid="ignore", divide="ignore"):  # (zero: NaN, as there)
-                q = q / np.max(np.abs(q))  # (scaled first, as `quat_normalize`)
-                q = q / np.sqrt(np.sum(q**2))
-            return UnitQuaternion(jax.device_put(q))
+        if is_concrete(value):  # (a fit's start: on the host, compiling nothing)
+            return UnitQuaternion(unit_on_host(value))
         return UnitQuaternion(quat_normalize(jnp.asarray(value)))
 
     def size(self):

@@ -46,7 +46,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._stored_jit import stored_filter_jit
-from .._validation import device_array
 from ._parameterisation import Unconstrained, UnitQuaternion
 
 _CONTINUITY = 10.0  # weight of a continuity defect, relative to its segment's data
@@ -469,10 +468,11 @@ class Shooting:
         # (The host's work between the compiled programs is NumPy's: each eager `jax.numpy`
         # operation is a program of its own, compiled on its first call in a process; a first
         # fit by multiple shooting compiled about 140 of them, 2 s of its 11 s.)
-        self.seg_ts = device_array(seg.ts, _canonical(seg.ts))
-        self.seg_data = {k: device_array(v, _canonical(v)) for k, v in seg.data.items()}
-        self.seg_w = device_array(seg.weights, _canonical(seg.weights))
-        self.has_next = device_array(seg.has_next, _canonical(seg.has_next))
+        # (`device_put` gives the dtype `jnp.asarray` would: float32 without 64-bit mode.)
+        self.seg_ts = jax.device_put(seg.ts)
+        self.seg_data = {k: jax.device_put(v) for k, v in seg.data.items()}
+        self.seg_w = jax.device_put(seg.weights)
+        self.has_next = jax.device_put(seg.has_next)
         n_p, n_s = sum(lay.p_sizes), sum(lay.s_sizes)
         # u (the problem's unknowns) as components of z = (p, s_0).
         p_off = dict(zip(lay.p_names, np.cumsum((0,) + lay.p_sizes)[:-1]))
@@ -507,7 +507,7 @@ class Shooting:
         from ._fit import _BIAS, _scene_and_state
 
         scene, y0 = _scene_and_state(problem, u)
-        starts = np.asarray(self.seg.ts[:, 0], _canonical(self.seg.ts))
+        starts = self.seg.ts[:, 0]  # (the program's call converts it as `seg_ts`)
         steps = max(problem.max_steps, 2000 * self.segments)
         ys, ok = _simulate_to(problem, scene, y0, starts, max_steps=steps)
         y0 = {n: np.asarray(v) for n, v in y0.items()}
@@ -548,7 +548,7 @@ class Shooting:
             ys = self.anchor(problem, u)
             smaps, s = bind_segments(self.templates, self.lay.s_names, ys)
             s = np.asarray(s)
-            p = np.asarray(u, _canonical(u))[self.p_of_u]
+            p = np.asarray(u)[self.p_of_u]
         else:
             p, s, smaps = resume
         ones = np.ones(self.n_s, p.dtype)
@@ -730,7 +730,7 @@ class Shooting:
         ss = np.asarray(B["ss"]).sum(axis=0)
         series = self.series(problem, B["r"])  # (the data residuals at the last point)
         data_loss = 0.5 * float(ss.sum())
-        u_fit = self.u_of(p, s, np.asarray(u, _canonical(u)))
+        u_fit = self.u_of(p, s, u)
         Hu = np.asarray(H)[np.ix_(self.z_of_u, self.z_of_u)]
         return {"loss": data_loss if np.isfinite(data_loss) else np.inf, "u": u_fit,
                 "converged": bool(converged and closed), "iterations": iterations,
@@ -745,11 +745,6 @@ def _max_abs(a, b) -> float:
 
 def _lifted(B) -> float:
     return 0.5 * float(np.sum(np.asarray(B["ss"])) + np.sum(np.asarray(B["d"]) ** 2))
-
-
-def _canonical(x):
-    """The dtype JAX gives the NumPy array `x` (float64 to float32 without 64-bit mode)."""
-    return jax.dtypes.canonicalize_dtype(np.asarray(x).dtype)
 
 
 @stored_filter_jit
