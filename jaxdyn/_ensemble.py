@@ -22,6 +22,7 @@ from ._chunkstore import ChunkStore, digest
 from ._distributions import AbstractDistribution, name_seed, split_name
 from ._hybrid import FORWARD, Watch
 from ._outcome import Outcome, to_diffrax
+from ._programs import forgotten_on_clear
 from ._scene import Scene
 from ._simulate import _prepare_run, _simulate, check_tolerances
 from ._solution import Trajectory
@@ -473,6 +474,7 @@ def _chunk_moments(v, ok):
 
 
 _COMPILED: dict = {}
+forgotten_on_clear(_COMPILED.clear)
 
 DEFAULT_CHUNK = 16384
 """The largest chunk `ensemble` chooses by itself: large enough that the per-call overhead is

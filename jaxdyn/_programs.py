@@ -16,8 +16,10 @@ for another machine sharing the folder, which now compiles afresh.)
 A stored program is used only where its key says it is the same program:
 - the key holds the program's name and static options, the scene's structure (its classes and
   static fields) and the inputs' shapes and dtypes, the versions of jax, jaxlib, diffrax,
-  equinox, optimistix and lineax, a hash of jaxdyn's own source, and the machine (`_machine`:
-  the processor, the devices and XLA's flags);
+  equinox, optimistix and lineax, a hash of jaxdyn's own source, the machine (`_machine`:
+  the processor, the devices and XLA's flags) and JAX's settings that change what XLA
+  compiles (`_compile_settings`: `jax_disable_most_optimizations` and the optimisation
+  levels and efforts, which JAX's own cache key holds through its compile options);
 - a structure that names anything outside these packages (a class defined in a notebook, a
   Python function held by an effect) is never stored: its code could change under the same
   name, so it is traced as usual.
@@ -51,6 +53,7 @@ import pickle
 import platform
 import re
 import threading
+import weakref
 from collections.abc import Callable
 from pathlib import Path
 from typing import ParamSpec, TypeVar
@@ -133,6 +136,7 @@ class StoredProgram:
         self.text = f"{name}|{structure}|{options!r}"
         self.trusted = _trusted(self.text)
         self.calls: dict = {}
+        _LIVE.add(self)
 
     def __call__(self, *args):
         return self.resolve(*args)(*args)
@@ -183,7 +187,7 @@ class StoredProgram:
         if where is None:
             return None
         text = f"{_version()}|{self.text}|{key}|x64={jax.config.jax_enable_x64}|" \
-               f"{jax.default_backend()}|{_machine()}"
+               f"{jax.default_backend()}|{_machine()}|{_compile_settings()}"
         return where / (hashlib.sha256(text.encode()).hexdigest() + ".exe")
 
     def _load(self, args, key):
@@ -378,6 +382,45 @@ def cancels_unused_preparations(fn: Callable[P, R]) -> Callable[P, R]:
                 pending.cancel()
 
     return wrapper
+
+
+_LIVE: "weakref.WeakSet[StoredProgram]" = weakref.WeakSet()
+
+
+_FORGET: list = []  # other modules' compiled programs, and their memories of calls of these
+
+
+def forgotten_on_clear(forget: Callable[[], None]) -> Callable[[], None]:
+    """Register `forget()`, which drops a module's compiled programs or its memory of loaded
+    programs' calls, to be called by `clear_loaded`."""
+    _FORGET.append(forget)
+    return forget
+
+
+def clear_loaded() -> None:
+    """Forget every stored program's compiled form held in this process, the calls of them
+    that other modules remember, and the programs other modules compiled themselves (the
+    ensemble's chunks): a later call reads the program again, or compiles it. This is
+    what `jax.clear_caches()` does for `jax.jit`'s programs, whose memory (XLA:CPU's
+    mappings of their machine code) it frees. As with `jax.jit`, a program once compiled in
+    a process is otherwise called whatever JAX's settings are later; programs being made
+    ready on a worker thread are left to their calls."""
+    for program in list(_LIVE):
+        program.calls = {k: v for k, v in program.calls.items() if isinstance(v, _Pending)}
+    for forget in _FORGET:
+        forget()
+
+
+# JAX's settings that change what XLA compiles from the same program: a program stored under
+# one is not read under another (JAX's persistent cache keys them through its compile options).
+_COMPILE_SETTINGS = ("jax_disable_most_optimizations", "jax_optimization_level",
+                     "jax_exec_time_optimization_effort", "jax_memory_fitting_effort",
+                     "jax_memory_fitting_level")
+
+
+def _compile_settings() -> str:
+    values = jax.config.values  # (once per signature: 50 us)
+    return ";".join(f"{name}={values.get(name)}" for name in _COMPILE_SETTINGS)
 
 
 _MACHINE = None

@@ -16,7 +16,7 @@ from ._body import AbstractBody
 from ._custom_types import State
 from ._hybrid import FORWARD, finite, integrate
 from ._outcome import Outcome
-from ._programs import _signature, thread_setting, when_lowered
+from ._programs import _signature, forgotten_on_clear, thread_setting, when_lowered
 from ._scene import Scene
 from ._solution import (  # noqa: F401  (_PROGRAMS: read by benchmarks/latency.py)
     _PROGRAMS,
@@ -260,6 +260,12 @@ _OUTCOME = _FIELDS.index("outcome")
 # its leaves and that dict, so that a loop over calls does not take the scene apart each time.
 _STRUCTURES: dict = {}
 _LAST: list = [(None, None, None)]
+
+
+@forgotten_on_clear
+def _forget_calls() -> None:
+    _STRUCTURES.clear()
+    _LAST[0] = (None, None, None)
 
 
 def _check_state_values(scene: Scene, y0) -> None:

@@ -16,7 +16,7 @@ from jaxtyping import Array, ArrayLike, Bool, Float, Int
 from ._custom_types import State
 from ._outcome import NAMES, Outcome, SimulationError
 from ._padded import over_padded_times
-from ._programs import StoredProgram
+from ._programs import StoredProgram, forgotten_on_clear
 from ._scene import Scene
 from ._validation import ParameterError, as_float_array, is_concrete, on_host
 
@@ -321,6 +321,11 @@ def _shapes_and_arrays(leaves) -> bool:
 # program, its trajectory (a weak reference: its samples are not kept alive) and the
 # program's call for that trajectory's times and states.
 _LAST_OUTPUTS: list = [(None, None, None, None, lambda: None, None)]
+
+
+@forgotten_on_clear
+def _forget_last_outputs() -> None:
+    _LAST_OUTPUTS[0] = (None, None, None, None, lambda: None, None)
 
 
 def _remember(traj, scene, leaves, names, program, call) -> None:

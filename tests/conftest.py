@@ -15,6 +15,16 @@ import pytest
 from jaxdyn._xla import prefer_fast_compilation  # noqa: E402
 
 prefer_fast_compilation()
+# Most tests spend their time in XLA compiling programs that then run for milliseconds, so XLA
+# compiles them with most optimisations off (JAX's `jax_disable_most_optimizations`: LLVM at
+# -O0 without its expensive passes), in the workers and in the processes they start (notebook
+# kernels, commands), unless JAX_DISABLE_MOST_OPTIMIZATIONS chooses (`=0`: the whole suite
+# compiled as a user's programs are). Tests marked `optimized` compile as a user's programs
+# do: those whose time is running (a posterior's sampling, the longest notebooks), and those
+# that compare two programs bit for bit or bound the round-off of the code a user runs. Two
+# fresh-cache runs of the suite on 2 cores (6 Dec 2026): 642 s with every test optimised, 562 s
+# with none (the sampling tests up to 3.4x slower, six comparisons failing).
+os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
 if os.environ.get("JAXDYN_TEST_XLA_FLAGS"):
     os.environ["XLA_FLAGS"] = " ".join(
         filter(None, (os.environ.get("XLA_FLAGS", ""), os.environ["JAXDYN_TEST_XLA_FLAGS"])))
@@ -29,6 +39,7 @@ jax.config.update("jax_numpy_dtype_promotion", "strict")
 # one process compiled is loaded by the others, and a second run of the suite loads them all.
 os.environ.setdefault("JAXDYN_CACHE_DIR", os.path.join(tempfile.gettempdir(),
                                                        f"jaxdyn-test-cache-{os.getuid()}"))
+from jaxdyn import _programs  # noqa: E402
 from jaxdyn._cache import enable_compilation_cache  # noqa: E402
 
 enable_compilation_cache()
@@ -69,6 +80,31 @@ SLOW_FIRST = (
 )
 
 
+_LESS_OPTIMISED = jax.config.values["jax_disable_most_optimizations"]
+_HELD = {"less optimised": False}  # whether this worker's caches may hold such programs
+
+
+@pytest.fixture(autouse=True)
+def _optimisation(request, monkeypatch):
+    """An `optimized` test compiles its programs, and the processes it starts theirs, as a
+    user's are compiled (see above), after this worker's programs compiled otherwise are
+    forgotten (`jax.jit`'s, and jaxdyn's stored programs: neither is keyed by the setting)."""
+    if not _LESS_OPTIMISED or request.node.get_closest_marker("optimized") is None:
+        _HELD["less optimised"] = _LESS_OPTIMISED
+        yield
+        return
+    if _HELD["less optimised"]:
+        jax.clear_caches()
+        _programs.clear_loaded()
+        _HELD["less optimised"] = False
+    monkeypatch.setenv("JAX_DISABLE_MOST_OPTIMIZATIONS", "0")
+    jax.config.update("jax_disable_most_optimizations", False)
+    try:
+        yield
+    finally:
+        jax.config.update("jax_disable_most_optimizations", True)
+
+
 # Slow sweeps: the parameter values of a check beyond the representatives that the suite runs
 # (every solver, outcome or mode is still checked at least once). They are marked
 # `pytest.mark.sweep` and left out unless `--sweeps` is given; `python benchmarks/sweeps.py`
@@ -82,6 +118,8 @@ def pytest_addoption(parser):
 def pytest_configure(config):
     config.addinivalue_line("markers", "sweep: a further parameter value of a check the suite "
                                        "already runs; left out unless --sweeps is given")
+    config.addinivalue_line("markers", "optimized: compiled with XLA's optimisations, as a "
+                                       "user's programs are (the others: most of them off)")
 
 
 def pytest_collection_modifyitems(config, items):
@@ -127,4 +165,5 @@ def _bounded_memory_mappings():
             mappings = sum(1 for _ in f)
         if mappings > _MAPPING_LIMIT // 2:
             jax.clear_caches()
+            _programs.clear_loaded()
             gc.collect()

@@ -72,9 +72,10 @@ def test_modes_agree(free_adaptive):
     assert np.all(steps == steps[:, :1])
 
 
-def test_samples_do_not_depend_on_the_chunk_size(free_adaptive):
+@pytest.mark.optimized  # (bit for bit: the programs a user runs)
+def test_samples_do_not_depend_on_the_chunk_size():
     other = _free(chunk_size=48)
-    assert np.array_equal(other.values["omega"], free_adaptive.values["omega"])
+    assert np.array_equal(other.values["omega"], _free().values["omega"])
 
 
 def test_statistics_are_those_of_the_kept_values(free_adaptive):
@@ -452,6 +453,7 @@ def test_montecarlo_command(tmp_path):
     assert bad.returncode == 2 and "--devices=0" in bad.stderr and "Traceback" not in bad.stderr
 
 
+@pytest.mark.optimized  # (bit for bit: the programs a user runs)
 def test_compacting_the_batch_changes_no_trajectory():
     """Per-trajectory stepping moves the running trajectories to smaller batches as others
     finish: states, saved values, event times, statuses and step counts stay bit for bit."""

@@ -77,6 +77,7 @@ def test_event_among_many_samples():
     np.testing.assert_allclose(energy, energy[0], rtol=1e-9)
 
 
+@pytest.mark.optimized  # (bit for bit: the programs a user runs)
 def test_switching_scene_with_many_samples_and_its_dense_table():
     """A rough-floor rod that slips (several segments): the samples match diffrax's
     `SaveAt(ts)`, and the dense output (the table of accepted steps, written beside them)

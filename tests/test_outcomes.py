@@ -150,6 +150,7 @@ def test_outcome_names_and_messages_are_one_table():
 
 @pytest.mark.parametrize("kw", [{"ts": np.linspace(0.0, 2.0, 41)}, {"dense": True},
                                 {"solver": diffrax.Dopri5(), "ts": np.linspace(0.0, 2.0, 9)}])
+@pytest.mark.optimized  # (bit for bit: the programs a user runs)
 def test_a_concrete_run_takes_the_steps_of_the_differentiable_loop(kw):
     """A call with concrete values loops as diffrax's `ForwardMode` (nothing can differentiate
     its results); under the caller's trace it loops as `RecursiveCheckpointAdjoint`, which
@@ -178,6 +179,7 @@ def test_a_concrete_run_takes_the_steps_of_the_differentiable_loop(kw):
     assert np.all(np.isfinite(np.asarray(grad)))
 
 
+@pytest.mark.optimized  # (bit for bit: the programs a user runs)
 def test_an_implicit_solver_keeps_the_dense_output_of_a_run_with_switches():
     """Kvaerno5 with `dense=True` on the rough-floor rod (its slip switches, then its impact
     ends the run): the dense table is laid out from the solver's step, whose root finder takes

@@ -24,6 +24,7 @@ from test_identify import FIT_BODY, SAMPLES, euler_rates, rod_case
 import jaxdyn as jd
 
 pytest.importorskip("blackjax")
+pytestmark = pytest.mark.optimized  # (sampling: their time is running, not compiling)
 
 POSTERIOR = dict(posterior=200, warmup=100)  # 4 chains (the default) of 50 draws
 

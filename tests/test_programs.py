@@ -186,6 +186,53 @@ def test_a_later_process_loads_this_machines_compiled_program(stored, monkeypatc
         jax.monitoring.unregister_event_duration_listener(listen)
 
 
+def test_a_program_stored_under_other_compile_settings_is_not_read(stored):
+    """JAX's settings that change what XLA compiles (here `jax_disable_most_optimizations`,
+    which the tests use) are part of a stored program's key, as they are of JAX's own cache
+    key: a program compiled with XLA's optimisations off is not read where they are on, nor
+    the reverse; each is read again under its own setting."""
+    y0 = SCENE.state(theta=0.2)
+    calls = []
+    before = jax.config.values["jax_disable_most_optimizations"]
+    try:
+        outs = []
+        for less in (True, False, True, False):
+            jax.config.update("jax_disable_most_optimizations", less)
+            program, leaves = _program(calls)  # (a new object: as in a later process)
+            outs.append(program(leaves, y0, np.asarray(5.0)))
+        assert calls == [1, 1] and len(list(stored.glob("*.exe"))) == 2
+    finally:
+        jax.config.update("jax_disable_most_optimizations", before)
+    # Independent route: the fall time from the energy integral, under either setting.
+    fall = float(SCENE.body.fall_time(0.2, 0.0))
+    for out in outs:
+        assert abs(float(out[0]) - fall) < 1e-7 * fall
+
+
+def test_clearing_forgets_loaded_programs_and_the_calls_remembered(stored):
+    """`_programs.clear_loaded()` is to stored programs what `jax.clear_caches()` is to
+    `jax.jit`: this process's compiled programs and the calls that `simulate` and the
+    derived outputs remember are dropped; the next call reads the program again (no
+    tracing) and gives the same numbers."""
+    y0 = SCENE.state(theta=0.2)
+    calls = []
+    program, leaves = _program(calls)
+    out = program(leaves, y0, np.asarray(5.0))
+    traj = jd.simulate(SCENE, y0, 1.0)
+    energy = traj.energy
+    assert program.calls and _simulate._LAST[0][0] is SCENE
+    _programs.clear_loaded()
+    assert not program.calls and _simulate._LAST[0][0] is None and not _simulate._STRUCTURES
+    assert _solution._LAST_OUTPUTS[0][0] is None
+    out2 = program(leaves, y0, np.asarray(5.0))
+    assert calls == [1]
+    for a, b in zip(jax.tree.leaves(out), jax.tree.leaves(out2)):
+        np.testing.assert_array_equal(a, b)
+    again = jd.simulate(SCENE, y0, 1.0)
+    np.testing.assert_array_equal(again.ys["theta"], traj.ys["theta"])
+    np.testing.assert_array_equal(again.energy, energy)
+
+
 def test_a_program_held_by_the_compilation_cache_is_not_stored_compiled(stored, monkeypatch):
     """XLA:CPU's executable read from JAX's persistent cache serialises without its kernels:
     it is never stored (a fresh compilation is)."""

@@ -59,6 +59,7 @@ def _drift(solver, t1, dt, attitude=True):
     }
 
 
+@pytest.mark.optimized  # (round-off over 2e5 steps of the code a user runs)
 def test_invariants_over_a_long_horizon():
     split = _drift(jd.RotationSplitting(2), 1e4, 0.05)
     # |h| and the inertial H are preserved to round-off; the quaternion stays unit.
