@@ -9,22 +9,22 @@ import pytest
 # (`jaxdyn._xla`: XLA's earlier fusion emitters, where this XLA has them, unless XLA_FLAGS
 # names the emitters): it halves the suite's compilation (1034 s -> 528 s of XLA time in the
 # workers, 1091 s -> 772 s of wall time on 2 cores, 28 Nov 2026) and runs the programs as
-# fast. Then any of JAXDYN_TEST_XLA_FLAGS: --xla_backend_optimization_level=0 halves the
-# compile time of compile-bound tests again but slows the run-bound ones by about 1.5x (the
-# telemetry-identification notebook: 115 s -> 177 s), so XLA's defaults stay otherwise.
-from jaxdyn._xla import prefer_fast_compilation  # noqa: E402
-
-prefer_fast_compilation()
+# fast. Then any of JAXDYN_TEST_XLA_FLAGS, added to them.
+#
 # Most tests spend their time in XLA compiling programs that then run for milliseconds, so XLA
 # compiles them with most optimisations off (JAX's `jax_disable_most_optimizations`: LLVM at
 # -O0 without its expensive passes), in the workers and in the processes they start (notebook
-# kernels, commands), unless JAX_DISABLE_MOST_OPTIMIZATIONS chooses (`=0`: the whole suite
-# compiled as a user's programs are). Tests marked `optimized` compile as a user's programs
-# do: those whose time is running (a posterior's sampling, the longest notebooks), and those
-# that compare two programs bit for bit or bound the round-off of the code a user runs. Two
-# fresh-cache runs of the suite on 2 cores (6 Dec 2026): 642 s with every test optimised, 562 s
-# with none (the sampling tests up to 3.4x slower, six comparisons failing).
+# kernels, commands), unless JAX_DISABLE_MOST_OPTIMIZATIONS chooses (`=0`: every test compiled
+# as a user's programs are). Tests marked `optimized` compile as a user's programs do (the
+# `_optimisation` fixture below): those whose time is running (a posterior's sampling, the
+# longest notebooks: 1.6-3.4x slower otherwise), and those that compare two programs bit for
+# bit or bound the round-off of the code a user runs. Fresh-cache runs of the suite on 2
+# cores, one after the other (6 Dec 2026): 642 s with every test optimised, 562 s with none
+# (six comparisons failing), 504 s so.
 os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
+from jaxdyn._xla import prefer_fast_compilation  # noqa: E402
+
+prefer_fast_compilation()
 if os.environ.get("JAXDYN_TEST_XLA_FLAGS"):
     os.environ["XLA_FLAGS"] = " ".join(
         filter(None, (os.environ.get("XLA_FLAGS", ""), os.environ["JAXDYN_TEST_XLA_FLAGS"])))
