@@ -259,13 +259,14 @@ _OUTCOME = _FIELDS.index("outcome")
 # once (the layout checked, the dtype, the program's callable); and the last scene called, with
 # its leaves and that dict, so that a loop over calls does not take the scene apart each time.
 _STRUCTURES: dict = {}
-_LAST: list = [(None, None, None)]
+_NO_SCENE = (None, None, None)
+_LAST: list = [_NO_SCENE]
 
 
 @forgotten_on_clear
 def _forget_calls() -> None:
     _STRUCTURES.clear()
-    _LAST[0] = (None, None, None)
+    _LAST[0] = _NO_SCENE
 
 
 def _check_state_values(scene: Scene, y0) -> None:

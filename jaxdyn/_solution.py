@@ -320,12 +320,13 @@ def _shapes_and_arrays(leaves) -> bool:
 # reused while it is here; a scene holds parameters), the scene's leaves, output names and
 # program, its trajectory (a weak reference: its samples are not kept alive) and the
 # program's call for that trajectory's times and states.
-_LAST_OUTPUTS: list = [(None, None, None, None, lambda: None, None)]
+_NO_OUTPUTS = (None, None, None, None, lambda: None, None)
+_LAST_OUTPUTS: list = [_NO_OUTPUTS]
 
 
 @forgotten_on_clear
 def _forget_last_outputs() -> None:
-    _LAST_OUTPUTS[0] = (None, None, None, None, lambda: None, None)
+    _LAST_OUTPUTS[0] = _NO_OUTPUTS
 
 
 def _remember(traj, scene, leaves, names, program, call) -> None:

@@ -111,7 +111,7 @@ def test_host_and_device_inputs_share_one_compiled_program(on_disk, tmp_path, mo
     compiled it twice (inputs committed to a device are another lowering)."""
     monkeypatch.setattr(_programs, "_directory", lambda: tmp_path if on_disk else None)
     monkeypatch.setattr(_simulate, "_STRUCTURES", {})  # (this process's programs: none)
-    monkeypatch.setattr(_simulate, "_LAST", [(None, None, None)])
+    monkeypatch.setattr(_simulate, "_LAST", [_simulate._NO_SCENE])
     monkeypatch.setattr(_solution, "_PROGRAMS", {})
     ts = np.linspace(0.0, 0.1, 37)  # (a signature no other test compiles)
     with jax.log_compiles(), caplog.at_level("WARNING"):
@@ -489,7 +489,7 @@ def test_a_run_prepares_its_resampling_and_summary_while_it_compiles(stored, mon
     # are prepared from the shapes of its outputs, and compile on worker threads while this
     # thread compiles the run; the calls that follow wait for them instead of compiling.
     monkeypatch.setattr(_simulate, "_STRUCTURES", {})  # (this process's programs: none)
-    monkeypatch.setattr(_simulate, "_LAST", [(None, None, None)])
+    monkeypatch.setattr(_simulate, "_LAST", [_simulate._NO_SCENE])
     monkeypatch.setattr(_solution, "_PROGRAMS", {})
     scene = jd.Scene(jd.RigidBody(np.array([1.0, 2.0, 2.5])))
     y0 = scene.state(omega=[0.3, 1.1, -0.2])
@@ -529,7 +529,7 @@ def test_a_run_prepares_its_resampling_and_summary_while_it_compiles(stored, mon
 
 def test_a_failing_preparation_costs_the_run_nothing(stored, monkeypatch):
     monkeypatch.setattr(_simulate, "_STRUCTURES", {})
-    monkeypatch.setattr(_simulate, "_LAST", [(None, None, None)])
+    monkeypatch.setattr(_simulate, "_LAST", [_simulate._NO_SCENE])
     monkeypatch.setattr(_solution, "_PROGRAMS", {})
     y0 = SCENE.state(theta=0.3)
 
