@@ -1,0 +1,104 @@
+"""The test suite's time, and where it goes.
+
+Runs the README's test command (`python -m pytest`: its workers, its configuration) on a fresh
+persistent compilation cache of its own (as on a clean machine), with the plugin
+`benchmarks/_suite_plugin.py` in every worker, and prints one JSON object:
+
+- the wall time and the CPU time of the whole run (the workers and every process they started and
+  waited for: notebook kernels, commands);
+- in the workers: JAX's tracing, lowering and XLA compilation, the programs compiled and those
+  loaded from the persistent cache, and what is left (running, Python, pytest); the CPU of
+  the other processes (those the tests started: notebook kernels, commands; and pytest's
+  controller) apart;
+- per module and for the tests that cost most CPU, the same split.
+
+Usage: `python benchmarks/suite.py [--top N] [-- extra pytest arguments]` (for example
+`-- tests/test_outcomes.py -n 0`). It exits non-zero if the suite fails. The suite is CPU-bound
+on 2 cores: compare runs made one after the other on the same idle machine, and compare CPU
+seconds and programs compiled (which do not depend on the machine's load) as well as wall time.
+"""
+
+import argparse
+import collections
+import glob
+import json
+import os
+import re
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+_SPLIT = ("trace_s", "lower_s", "compile_s")
+
+
+def _rusage_children() -> float:
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def _add(into: dict, test: dict) -> None:
+    for k in ("wall_s", "cpu_s", *_SPLIT, "compiled", "loaded"):
+        into[k] = into.get(k, 0) + test[k]
+
+
+def _rounded(d: dict) -> dict:
+    return {k: round(v, 2) if isinstance(v, float) else v for k, v in d.items()}
+
+
+def main(argv: list[str]) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--top", type=int, default=30, help="tests listed (most CPU first)")
+    parser.add_argument("pytest_args", nargs="*", help="after --: passed to pytest")
+    args = parser.parse_args(argv)
+    with tempfile.TemporaryDirectory() as tmp:
+        profile, cache = Path(tmp) / "profile", Path(tmp) / "cache"
+        profile.mkdir()
+        env = {**os.environ, "JAXDYN_SUITE_PROFILE_DIR": str(profile),
+               "JAXDYN_CACHE_DIR": str(cache),
+               "PYTHONPATH": os.pathsep.join(filter(None, (str(ROOT / "benchmarks"),
+                                                           os.environ.get("PYTHONPATH"))))}
+        cpu0, t0 = _rusage_children(), time.perf_counter()
+        proc = subprocess.run(
+            [sys.executable, "-m", "pytest", "-q", "-p", "_suite_plugin",
+             "-p", "no:cacheprovider", *args.pytest_args],
+            cwd=ROOT, env=env, capture_output=True, text=True)
+        wall, cpu = time.perf_counter() - t0, _rusage_children() - cpu0
+        processes = [json.loads(Path(p).read_text())
+                     for p in glob.glob(str(profile / "process-*.json"))]
+    processes = [p for p in processes if p["tests"]]  # (not xdist's controller)
+    tests = {k: v for p in processes for k, v in p["tests"].items()}
+    workers = {"processes": len(processes), "cpu_s": sum(p["cpu_s"] for p in processes)}
+    for k in (*_SPLIT, "compiled", "loaded"):
+        workers[k] = sum(p["totals"][k] for p in processes)
+    workers["other_s"] = workers["cpu_s"] - sum(workers[k] for k in _SPLIT)
+    modules: dict = collections.defaultdict(dict)
+    for nodeid, test in tests.items():
+        _add(modules[nodeid.split("::")[0]], test)
+    summary = re.findall(r"(\d+) (passed|failed|skipped|deselected|error)",
+                         proc.stdout.splitlines()[-1] if proc.stdout else "")
+    out = {
+        "command": " ".join(["python -m pytest", *args.pytest_args]),
+        "returncode": proc.returncode,
+        **{word: int(n) for n, word in summary},
+        "wall_s": round(wall, 1),
+        "cpu_s": round(cpu, 1),
+        "cores_busy": round(cpu / wall, 2),
+        "workers": _rounded(workers),
+        "other_processes_cpu_s": round(cpu - workers["cpu_s"], 1),
+        "modules": {m: _rounded(v) for m, v in
+                    sorted(modules.items(), key=lambda kv: -kv[1]["cpu_s"])},
+        "tests": {k: _rounded(v) for k, v in
+                  sorted(tests.items(), key=lambda kv: -kv[1]["cpu_s"])[:args.top]},
+    }
+    if proc.returncode != 0:
+        out["output_tail"] = (proc.stdout + proc.stderr)[-3000:]
+    print(json.dumps(out, indent=2))
+    return 0 if proc.returncode == 0 and processes else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main(sys.argv[1:]))
