@@ -1,8 +1,17 @@
 """A pytest plugin for `benchmarks/suite.py`: where each test's time goes in the process that runs
-it (a worker), from JAX's own monitoring events.
+it, from JAX's own monitoring events.
 
-For each test: wall time, the process's CPU time, and JAX's tracing, lowering and XLA
-compilation time and the programs compiled (persistent-cache misses) and loaded (hits) meanwhile.
+For each test: wall time, the process's CPU time, and the CPU time JAX spent tracing, lowering
+and compiling or loading programs (`jax.jit`'s compilation step: XLA's compilation of a
+program, or its loading from the persistent cache), the programs so compiled and loaded, and
+jaxdyn's stored programs loaded. The phases are timed in CPU time, from the event's start to
+its end (JAX reports both on the thread that runs it), so a busy machine does not inflate
+them: tracing and lowering in that thread's CPU time (`time.thread_time`: Python's work),
+compilation in the process's (`time.process_time`: XLA compiles on threads of its own while
+the caller waits; the little that other threads of the process do meanwhile, such as jaxdyn's
+background preparation, is counted with it). A compilation on one of jaxdyn's background
+threads that ends after its test is counted with the next test.
+
 Each process writes one JSON file into `$JAXDYN_SUITE_PROFILE_DIR` when pytest ends. JAX is
 imported only once the suite's `conftest.py` has set its environment (`pytest_configure`): its
 configuration is read when it is first imported.
@@ -11,54 +20,81 @@ configuration is read when it is first imported.
 import collections
 import json
 import os
+import threading
 import time
 
 import pytest
 
-_TIMES: collections.Counter = collections.Counter()
-_COUNTS: collections.Counter = collections.Counter()
+PHASES = {"trace_s": "/jax/core/compile/jaxpr_trace_duration",
+          "lower_s": "/jax/core/compile/jaxpr_to_mlir_module_duration",
+          "compile_or_load_s": "/jax/core/compile/backend_compile_duration"}
+_REQUESTS = PHASES["compile_or_load_s"]  # (one per `jax.jit` compilation step, hit or miss)
+_HITS = "/jax/compilation_cache/cache_hits"
+_JAXDYN_LOADS = "/jaxdyn/programs/load_duration"
+_LOCK = threading.Lock()
+_CPU: collections.Counter = collections.Counter()  # event -> thread CPU seconds
+_COUNTS: collections.Counter = collections.Counter()  # event -> occurrences
+_STARTS: dict = {}  # (thread, event) -> thread CPU time at the event's start
 _TESTS: dict = {}
-_EVENTS = {"trace_s": "/jax/core/compile/jaxpr_trace_duration",
-           "lower_s": "/jax/core/compile/jaxpr_to_mlir_module_duration",
-           "compile_s": "/jax/core/compile/backend_compile_duration"}
-_MISSES, _HITS = "/jax/compilation_cache/cache_misses", "/jax/compilation_cache/cache_hits"
 _START = time.time()
 
 
-def _duration(event, duration, **_):
-    _TIMES[event] += duration
+def _clock(event) -> float:
+    return time.process_time() if event == _REQUESTS else time.thread_time()
+
+
+def _started(event, value, **_):
+    if event in PHASES.values():
+        _STARTS.setdefault((threading.get_ident(), event), []).append(_clock(event))
+
+
+def _ended(event, duration, **_):
+    with _LOCK:
+        _COUNTS[event] += 1
+        starts = _STARTS.get((threading.get_ident(), event))
+        if starts:
+            _CPU[event] += _clock(event) - starts.pop()
+        elif event == _JAXDYN_LOADS:
+            _CPU[event] += duration  # (no start recorded: its wall time)
 
 
 def _event(event, **_):
-    _COUNTS[event] += 1
+    with _LOCK:
+        _COUNTS[event] += 1
+
+
+def _snapshot() -> dict:
+    with _LOCK:
+        return {**{k: _CPU[v] for k, v in PHASES.items()},
+                "compiled": _COUNTS[_REQUESTS] - _COUNTS[_HITS], "loaded": _COUNTS[_HITS],
+                "jaxdyn_loaded": _COUNTS[_JAXDYN_LOADS]}
 
 
 def pytest_configure(config):
     from jax._src import monitoring  # (after conftest.py: see above)
 
-    monitoring.register_event_duration_secs_listener(_duration)
+    monitoring.register_scalar_listener(_started)
+    monitoring.register_event_duration_secs_listener(_ended)
     monitoring.register_event_listener(_event)
 
 
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_protocol(item, nextitem):
-    before = {k: _TIMES[v] for k, v in _EVENTS.items()}
-    misses, hits = _COUNTS[_MISSES], _COUNTS[_HITS]
+    before = _snapshot()
     wall, cpu = time.perf_counter(), time.process_time()
     yield
-    _TESTS[item.nodeid] = {
-        "wall_s": time.perf_counter() - wall, "cpu_s": time.process_time() - cpu,
-        **{k: _TIMES[v] - before[k] for k, v in _EVENTS.items()},
-        "compiled": _COUNTS[_MISSES] - misses, "loaded": _COUNTS[_HITS] - hits}
+    after = _snapshot()
+    _TESTS[item.nodeid] = {"wall_s": time.perf_counter() - wall,
+                           "cpu_s": time.process_time() - cpu,
+                           **{k: after[k] - before[k] for k in after}}
 
 
 def pytest_unconfigure(config):
     where = os.environ.get("JAXDYN_SUITE_PROFILE_DIR")
     if not where:
         return
-    totals = {k: _TIMES[v] for k, v in _EVENTS.items()}
-    out = {"pid": os.getpid(), "wall_s": time.time() - _START, "cpu_s": time.process_time(),
-           "totals": {**totals, "compiled": _COUNTS[_MISSES], "loaded": _COUNTS[_HITS]},
-           "tests": _TESTS}
+    role = "worker" if hasattr(config, "workerinput") else "main"
+    out = {"pid": os.getpid(), "role": role, "wall_s": time.time() - _START,
+           "cpu_s": time.process_time(), "totals": _snapshot(), "tests": _TESTS}
     with open(os.path.join(where, f"process-{os.getpid()}.json"), "w") as f:
         json.dump(out, f)

@@ -6,10 +6,11 @@ persistent compilation cache of its own (as on a clean machine), with the plugin
 
 - the wall time and the CPU time of the whole run (the workers and every process they started and
   waited for: notebook kernels, commands);
-- in the workers: JAX's tracing, lowering and XLA compilation, the programs compiled and those
-  loaded from the persistent cache, and what is left (running, Python, pytest); the CPU of
-  the other processes (those the tests started: notebook kernels, commands; and pytest's
-  controller) apart;
+- in the workers: the CPU time JAX spent tracing, lowering, and compiling or loading
+  programs (`benchmarks/_suite_plugin.py` says how it is timed), the programs XLA compiled and
+  those loaded from the persistent cache, jaxdyn's stored programs loaded, and what is left
+  (running the programs, Python, pytest); the CPU time of the other processes (those the
+  tests started: notebook kernels, commands; and pytest's controller) apart;
 - per module and for the tests that cost most CPU, the same split.
 
 Usage: `python benchmarks/suite.py [--top N] [-- extra pytest arguments]` (for example
@@ -32,7 +33,8 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-_SPLIT = ("trace_s", "lower_s", "compile_s")
+_SPLIT = ("trace_s", "lower_s", "compile_or_load_s")
+_COUNTED = ("compiled", "loaded", "jaxdyn_loaded")
 
 
 def _rusage_children() -> float:
@@ -41,7 +43,7 @@ def _rusage_children() -> float:
 
 
 def _add(into: dict, test: dict) -> None:
-    for k in ("wall_s", "cpu_s", *_SPLIT, "compiled", "loaded"):
+    for k in ("wall_s", "cpu_s", *_SPLIT, *_COUNTED):
         into[k] = into.get(k, 0) + test[k]
 
 
@@ -69,17 +71,20 @@ def main(argv: list[str]) -> int:
         wall, cpu = time.perf_counter() - t0, _rusage_children() - cpu0
         processes = [json.loads(Path(p).read_text())
                      for p in glob.glob(str(profile / "process-*.json"))]
-    processes = [p for p in processes if p["tests"]]  # (not xdist's controller)
+    processes = ([p for p in processes if p["role"] == "worker"]  # (xdist's workers; without
+                 or processes)  # xdist, pytest's own process)
     tests = {k: v for p in processes for k, v in p["tests"].items()}
     workers = {"processes": len(processes), "cpu_s": sum(p["cpu_s"] for p in processes)}
-    for k in (*_SPLIT, "compiled", "loaded"):
+    for k in (*_SPLIT, *_COUNTED):
         workers[k] = sum(p["totals"][k] for p in processes)
     workers["other_s"] = workers["cpu_s"] - sum(workers[k] for k in _SPLIT)
     modules: dict = collections.defaultdict(dict)
     for nodeid, test in tests.items():
         _add(modules[nodeid.split("::")[0]], test)
-    summary = re.findall(r"(\d+) (passed|failed|skipped|deselected|error)",
-                         proc.stdout.splitlines()[-1] if proc.stdout else "")
+    last = next((line for line in reversed(proc.stdout.splitlines())
+                 if re.search(r" in [\d.]+s", line)), "")  # pytest's summary line
+    summary = re.findall(r"(\d+) (passed|failed|skipped|deselected|xfailed|xpassed|errors?)",
+                         last)
     out = {
         "command": " ".join(["python -m pytest", *args.pytest_args]),
         "returncode": proc.returncode,
