@@ -2,9 +2,10 @@
 it, from JAX's own monitoring events.
 
 For each test: wall time, the process's CPU time, and the CPU time JAX spent tracing, lowering
-and compiling or loading programs (`jax.jit`'s compilation step: XLA's compilation of a
-program, or its loading from the persistent cache), the programs so compiled and loaded, and
-jaxdyn's stored programs loaded. The phases are timed in CPU time, from the event's start to
+and compiling or loading programs (the phases the commands report, `trace_s`, `lower_s` and
+`compile_s`: `jax.jit`'s compilation step, XLA's compilation of a program or its loading
+from the persistent cache), the programs so compiled and loaded, and jaxdyn's stored programs
+loaded. The phases are timed in CPU time, from the event's start to
 its end (JAX reports both on the thread that runs it), so a busy machine does not inflate
 them: tracing and lowering in that thread's CPU time (`time.thread_time`: Python's work),
 compilation in the process's (`time.process_time`: XLA compiles on threads of its own while
@@ -25,16 +26,15 @@ import time
 
 import pytest
 
-PHASES = {"trace_s": "/jax/core/compile/jaxpr_trace_duration",
-          "lower_s": "/jax/core/compile/jaxpr_to_mlir_module_duration",
-          "compile_or_load_s": "/jax/core/compile/backend_compile_duration"}
-_REQUESTS = PHASES["compile_or_load_s"]  # (one per `jax.jit` compilation step, hit or miss)
+PHASES: dict = {}  # JAX's event -> the phase's name, as the commands report them (below)
+# One `_REQUESTS` per compilation step, compiled or loaded from the cache (one of `_HITS`).
+_REQUESTS = "/jax/core/compile/backend_compile_duration"
 _HITS = "/jax/compilation_cache/cache_hits"
 _JAXDYN_LOADS = "/jaxdyn/programs/load_duration"
 _LOCK = threading.Lock()
-_CPU: collections.Counter = collections.Counter()  # event -> thread CPU seconds
+_CPU: collections.Counter = collections.Counter()  # event -> CPU seconds (`_clock`)
 _COUNTS: collections.Counter = collections.Counter()  # event -> occurrences
-_STARTS: dict = {}  # (thread, event) -> thread CPU time at the event's start
+_STARTS: dict = {}  # (thread, event) -> `_clock` at the event's start
 _TESTS: dict = {}
 _START = time.time()
 
@@ -44,7 +44,7 @@ def _clock(event) -> float:
 
 
 def _started(event, value, **_):
-    if event in PHASES.values():
+    if event in PHASES:
         _STARTS.setdefault((threading.get_ident(), event), []).append(_clock(event))
 
 
@@ -54,8 +54,6 @@ def _ended(event, duration, **_):
         starts = _STARTS.get((threading.get_ident(), event))
         if starts:
             _CPU[event] += _clock(event) - starts.pop()
-        elif event == _JAXDYN_LOADS:
-            _CPU[event] += duration  # (no start recorded: its wall time)
 
 
 def _event(event, **_):
@@ -65,13 +63,17 @@ def _event(event, **_):
 
 def _snapshot() -> dict:
     with _LOCK:
-        return {**{k: _CPU[v] for k, v in PHASES.items()},
+        return {**{name: _CPU[event] for event, name in PHASES.items()},
                 "compiled": _COUNTS[_REQUESTS] - _COUNTS[_HITS], "loaded": _COUNTS[_HITS],
                 "jaxdyn_loaded": _COUNTS[_JAXDYN_LOADS]}
 
 
 def pytest_configure(config):
     from jax._src import monitoring  # (after conftest.py: see above)
+
+    from jaxdyn._commands._common import _COMPILE_EVENTS
+
+    PHASES.update({e: name for e, name in _COMPILE_EVENTS.items() if e != _JAXDYN_LOADS})
 
     monitoring.register_scalar_listener(_started)
     monitoring.register_event_duration_secs_listener(_ended)

@@ -33,7 +33,7 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-_SPLIT = ("trace_s", "lower_s", "compile_or_load_s")
+_SPLIT = ("trace_s", "lower_s", "compile_s")  # (compile_s: compiling or loading)
 _COUNTED = ("compiled", "loaded", "jaxdyn_loaded")
 
 
