@@ -1,11 +1,12 @@
 """A pytest plugin for `benchmarks/suite.py`: where each test's time goes in the process that runs
 it, from JAX's own monitoring events.
 
-For each test: wall time, the process's CPU time, and the CPU time JAX spent tracing, lowering
-and compiling or loading programs (the phases the commands report, `trace_s`, `lower_s` and
-`compile_s`: `jax.jit`'s compilation step, XLA's compilation of a program or its loading
-from the persistent cache), the programs so compiled and loaded, and jaxdyn's stored programs
-loaded. The phases are timed in CPU time, from the event's start to
+For each test: wall time, the process's CPU time, the CPU time of the processes it started
+and waited for (`children_cpu_s`: commands, notebook kernels), and the CPU time JAX spent
+tracing, lowering and compiling or loading programs (the phases the commands report,
+`trace_s`, `lower_s` and `compile_s`: `jax.jit`'s compilation step, XLA's compilation of a
+program or its loading from the persistent cache), the programs so compiled and loaded, and
+jaxdyn's stored programs loaded. The phases are timed in CPU time, from the event's start to
 its end (JAX reports both on the thread that runs it), so a busy machine does not inflate
 them: tracing and lowering in that thread's CPU time (`time.thread_time`: Python's work),
 compilation in the process's (`time.process_time`: XLA compiles on threads of its own while
@@ -21,6 +22,7 @@ configuration is read when it is first imported.
 import collections
 import json
 import os
+import resource
 import threading
 import time
 
@@ -35,6 +37,9 @@ _LOCK = threading.Lock()
 _CPU: collections.Counter = collections.Counter()  # event -> CPU seconds (`_clock`)
 _COUNTS: collections.Counter = collections.Counter()  # event -> occurrences
 _STARTS: dict = {}  # (thread, event) -> `_clock` at the event's start
+_TRACE = "/jax/core/compile/jaxpr_trace_duration"
+_TRACED: dict = {}  # function's name -> [traces, CPU seconds], within the running test
+_UNCACHEABLE: dict = {}  # program's name -> [compiled, seconds], within the running test
 _TESTS: dict = {}
 _START = time.time()
 
@@ -48,17 +53,48 @@ def _started(event, value, **_):
         _STARTS.setdefault((threading.get_ident(), event), []).append(_clock(event))
 
 
-def _ended(event, duration, **_):
+def _ended(event, duration, fun_name=None, **_):
     with _LOCK:
         _COUNTS[event] += 1
         starts = _STARTS.get((threading.get_ident(), event))
         if starts:
-            _CPU[event] += _clock(event) - starts.pop()
+            spent = _clock(event) - starts.pop()
+            _CPU[event] += spent
+            if event == _TRACE and fun_name is not None:
+                entry = _TRACED.setdefault(fun_name, [0, 0.0])
+                entry[0] += 1
+                entry[1] += spent
+
+
+def _traced_again() -> dict:
+    """The running test's functions traced more than once (a new function each time, or new
+    shapes or settings): how many traces beyond the first, their CPU time (each function's
+    average trace), and the three costliest by name."""
+    with _LOCK:
+        again = {name: (n - 1, cpu * (n - 1) / n) for name, (n, cpu) in _TRACED.items()
+                 if n > 1}
+    top = sorted(again.items(), key=lambda kv: -kv[1][1])[:3]
+    with _LOCK:
+        uncacheable = dict(_UNCACHEABLE)
+    worst = sorted(uncacheable.items(), key=lambda kv: -kv[1][1])[:3]
+    return {"traced_again": sum(n for n, _ in again.values()),
+            "uncacheable": sum(n for n, _ in uncacheable.values()),
+            "uncacheable_s": sum(t for _, t in uncacheable.values()),
+            **({"uncacheable_names": {name: n for name, (n, _) in worst}} if worst else {}),
+            "traced_again_s": sum(cpu for _, cpu in again.values()),
+            **({"traced_again_names": {name: n for name, (n, _) in top}} if top else {})}
 
 
 def _event(event, **_):
     with _LOCK:
         _COUNTS[event] += 1
+
+
+def _children_cpu() -> float:
+    """CPU time of the processes this one started and waited for (commands, notebook
+    kernels), user and system."""
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
 
 
 def _snapshot() -> dict:
@@ -75,6 +111,23 @@ def pytest_configure(config):
 
     PHASES.update({e: name for e, name in _COMPILE_EVENTS.items() if e != _JAXDYN_LOADS})
 
+    # Programs with host callbacks (equinox's runtime checks, `jax.debug`): JAX does not write
+    # them to the persistent cache, so each new trace of one compiles it again.
+    from jax._src import compiler
+
+    write = compiler._cache_write
+
+    def _cache_write(cache_key, compile_time_secs, module_name, backend, executable,
+                     host_callbacks, *args, **kwargs):
+        if host_callbacks:
+            with _LOCK:
+                entry = _UNCACHEABLE.setdefault(module_name, [0, 0.0])
+                entry[0] += 1
+                entry[1] += compile_time_secs
+        return write(cache_key, compile_time_secs, module_name, backend, executable,
+                     host_callbacks, *args, **kwargs)
+
+    compiler._cache_write = _cache_write
     monitoring.register_scalar_listener(_started)
     monitoring.register_event_duration_secs_listener(_ended)
     monitoring.register_event_listener(_event)
@@ -83,12 +136,16 @@ def pytest_configure(config):
 @pytest.hookimpl(hookwrapper=True)
 def pytest_runtest_protocol(item, nextitem):
     before = _snapshot()
-    wall, cpu = time.perf_counter(), time.process_time()
+    with _LOCK:
+        _TRACED.clear()
+        _UNCACHEABLE.clear()
+    wall, cpu, children = time.perf_counter(), time.process_time(), _children_cpu()
     yield
     after = _snapshot()
     _TESTS[item.nodeid] = {"wall_s": time.perf_counter() - wall,
                            "cpu_s": time.process_time() - cpu,
-                           **{k: after[k] - before[k] for k in after}}
+                           "children_cpu_s": _children_cpu() - children,
+                           **{k: after[k] - before[k] for k in after}, **_traced_again()}
 
 
 def pytest_unconfigure(config):

@@ -11,7 +11,14 @@ persistent compilation cache of its own (as on a clean machine), with the plugin
   those loaded from the persistent cache, jaxdyn's stored programs loaded, and what is left
   (running the programs, Python, pytest); the CPU time of the other processes (those the
   tests started: notebook kernels, commands; and pytest's controller) apart;
-- per module and for the tests that cost most CPU, the same split.
+- per module and for the tests that cost most CPU, the same split, and the CPU time of the
+  processes each started and waited for (`children_cpu_s`; ordered by the two together);
+  the functions a test traced more than once (`traced_again`, `traced_again_s`: a new
+  function given to `jax.jit` each time, or new shapes or settings), a test's three costliest
+  by name (`traced_again_names`); the programs it compiled that JAX's persistent cache
+  cannot keep (`uncacheable`, `uncacheable_s`: XLA's seconds; programs with host callbacks,
+  such as equinox's runtime checks, compiled again on each new trace); and the tests that
+  traced most again, and compiled most such programs, by those times.
 
 Usage: `python benchmarks/suite.py [--top N] [-- extra pytest arguments]` (for example
 `-- tests/test_outcomes.py -n 0`). It exits non-zero if the suite fails. The suite is CPU-bound
@@ -43,8 +50,13 @@ def _rusage_children() -> float:
 
 
 def _add(into: dict, test: dict) -> None:
-    for k in ("wall_s", "cpu_s", *_SPLIT, *_COUNTED):
+    for k in ("wall_s", "cpu_s", "children_cpu_s", *_SPLIT, *_COUNTED, "traced_again",
+              "traced_again_s", "uncacheable", "uncacheable_s"):
         into[k] = into.get(k, 0) + test[k]
+
+
+def _cost(item) -> float:  # a test's or module's CPU time, with the processes it started
+    return -(item[1]["cpu_s"] + item[1]["children_cpu_s"])
 
 
 def _rounded(d: dict) -> dict:
@@ -53,7 +65,8 @@ def _rounded(d: dict) -> dict:
 
 def main(argv: list[str]) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--top", type=int, default=30, help="tests listed (most CPU first)")
+    parser.add_argument("--top", type=int, default=30,
+                        help="tests listed (most CPU first, with their processes')")
     parser.add_argument("pytest_args", nargs="*", help="after --: passed to pytest")
     args = parser.parse_args(argv)
     with tempfile.TemporaryDirectory() as tmp:
@@ -95,9 +108,13 @@ def main(argv: list[str]) -> int:
         "workers": _rounded(workers),
         "other_processes_cpu_s": round(cpu - workers["cpu_s"], 1),
         "modules": {m: _rounded(v) for m, v in
-                    sorted(modules.items(), key=lambda kv: -kv[1]["cpu_s"])},
+                    sorted(modules.items(), key=_cost)},
         "tests": {k: _rounded(v) for k, v in
-                  sorted(tests.items(), key=lambda kv: -kv[1]["cpu_s"])[:args.top]},
+                  sorted(tests.items(), key=_cost)[:args.top]},
+        **{what: {k: {n: v[n] for n in (what, f"{what}_s", f"{what}_names") if n in v}
+                  for k, v in sorted(tests.items(), key=lambda kv: -kv[1][f"{what}_s"])
+                  [:args.top] if v[what]}
+           for what in ("traced_again", "uncacheable")},
     }
     if proc.returncode != 0:
         out["output_tail"] = (proc.stdout + proc.stderr)[-3000:]

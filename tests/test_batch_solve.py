@@ -88,9 +88,9 @@ def test_same_steps_and_values_as_diffeqsolve(problem, solver):
     t1, ts = 10.0, jnp.linspace(0.0, 10.0, 7)
     r = _engine(field, params, y0, t1, ts, solver)
     assert np.all(np.asarray(r.status) == 0)  # completed
+    reference = jax.jit(lambda p, y: _diffrax(field, p, y, t1, ts, solver))  # (traced once)
     for i in range(jax.tree.leaves(y0)[0].shape[0]):
-        sol = jax.jit(lambda p, y: _diffrax(field, p, y, t1, ts, solver))(
-            _row(params, i), _row(y0, i))
+        sol = reference(_row(params, i), _row(y0, i))
         assert int(r.steps[i]) == int(sol.stats["num_accepted_steps"])
         assert int(r.rejected[i]) == int(sol.stats["num_rejected_steps"])
         _close(_row(r.y_final, i), jax.tree.map(lambda x: x[-1], sol.ys))
@@ -206,8 +206,9 @@ def test_events_are_located_where_diffeqsolve_locates_them(solver):
     assert np.all(np.asarray(r.status) == 1) and np.all(np.asarray(r.event["low"]))
     event = dfx.Event(lambda t, y, args, **kw: y["q"] + 0.05,
                       root_finder=optx.Newton(rtol=1e-14, atol=1e-14))
+    reference = jax.jit(lambda p, y: _diffrax(field, p, y, 10.0, None, solver, event=event))
     for i in range(params["k"].shape[0]):
-        sol = _diffrax(field, _row(params, i), _row(y0, i), 10.0, None, solver, event=event)
+        sol = reference(_row(params, i), _row(y0, i))
         assert int(r.steps[i]) == int(sol.stats["num_accepted_steps"])
         np.testing.assert_allclose(float(r.t_final[i]), float(sol.ts[-1]), rtol=SAME_STEPS)
         _close(_row(r.y_final, i), jax.tree.map(lambda x: x[-1], sol.ys))

@@ -4,8 +4,7 @@ closed form for the free body, the fall-time quadrature for the rod, the analyti
 rotor momenta `h = (I_i - I_K) W`."""
 
 import json
-import subprocess
-import sys
+from types import SimpleNamespace
 
 import diffrax as dfx
 import jax.numpy as jnp
@@ -227,12 +226,20 @@ def test_implicit_solver_in_natural_scales():
     assert max(errs) < WITHIN_RTOL * DEFAULT_RTOL
 
 
-def run_cli(*args):
-    return subprocess.run([sys.executable, "-m", "jaxdyn", *args], capture_output=True,
-                          text=True, timeout=300)
+@pytest.fixture
+def run_cli(capsys):
+    """The command in this process (`jaxdyn._cli.main`, as `test_cli.py` runs it): its exit
+    status and its output."""
+    from test_cli import run_cli as run
+
+    def run_it(*args):
+        status, out, err = run(capsys, *args)
+        return SimpleNamespace(returncode=status, stdout=out, stderr=err)
+
+    return run_it
 
 
-def test_cli_rod_at_1e_12_reports_and_agrees():
+def test_cli_rod_at_1e_12_reports_and_agrees(run_cli):
     p = run_cli("run", "falling-rod", "--set", "theta0=1e-12", "--json")
     assert p.returncode == 0, p.stderr
     out = json.loads(p.stdout)
@@ -241,7 +248,7 @@ def test_cli_rod_at_1e_12_reports_and_agrees():
     assert "warning" not in p.stderr
 
 
-def test_cli_rod_that_has_not_landed_by_t1_says_so():
+def test_cli_rod_that_has_not_landed_by_t1_says_so(run_cli):
     # A rod 1000 m long lands after the scene's t1 = 10 s: the run has no impact to print
     # beside the reference's, and says so on stderr instead of printing None beside it.
     p = run_cli("run", "falling-rod", "--set", "length=1000", "--json")
@@ -266,7 +273,7 @@ def test_a_rod_that_never_falls_has_no_reference_to_miss():
     assert warn_on_disagreement(report, 1e-10, 2.0) == []
 
 
-def test_cli_free_body_reports_its_closed_form():
+def test_cli_free_body_reports_its_closed_form(run_cli):
     p = run_cli("run", "torque-free", "--json", "--set", "rtol=1e-3")
     assert p.returncode == 0, p.stderr
     out = json.loads(p.stdout)
