@@ -66,23 +66,27 @@ def _ended(event, duration, fun_name=None, **_):
                 entry[1] += spent
 
 
-def _traced_again() -> dict:
-    """The running test's functions traced more than once (a new function each time, or new
-    shapes or settings): how many traces beyond the first, their CPU time (each function's
-    average trace), and the three costliest by name."""
+def _top3(entries: dict) -> dict:
+    """The three costliest names of `{name: (count, seconds)}`, with their counts."""
+    return {name: n for name, (n, _) in sorted(entries.items(), key=lambda kv: -kv[1][1])[:3]}
+
+
+def _repeats() -> dict:
+    """The running test's repeated work: its functions traced more than once (a new function
+    each time, or new shapes or settings; the traces beyond the first, and their CPU time at
+    each function's average trace) and the programs it compiled that the persistent cache
+    cannot keep (XLA's seconds); each with its three costliest names."""
     with _LOCK:
         again = {name: (n - 1, cpu * (n - 1) / n) for name, (n, cpu) in _TRACED.items()
                  if n > 1}
-    top = sorted(again.items(), key=lambda kv: -kv[1][1])[:3]
-    with _LOCK:
-        uncacheable = dict(_UNCACHEABLE)
-    worst = sorted(uncacheable.items(), key=lambda kv: -kv[1][1])[:3]
-    return {"traced_again": sum(n for n, _ in again.values()),
-            "uncacheable": sum(n for n, _ in uncacheable.values()),
-            "uncacheable_s": sum(t for _, t in uncacheable.values()),
-            **({"uncacheable_names": {name: n for name, (n, _) in worst}} if worst else {}),
-            "traced_again_s": sum(cpu for _, cpu in again.values()),
-            **({"traced_again_names": {name: n for name, (n, _) in top}} if top else {})}
+        uncacheable = {name: tuple(v) for name, v in _UNCACHEABLE.items()}
+    out = {}
+    for what, entries in (("traced_again", again), ("uncacheable", uncacheable)):
+        out[what] = sum(n for n, _ in entries.values())
+        out[f"{what}_s"] = sum(t for _, t in entries.values())
+        if entries:
+            out[f"{what}_names"] = _top3(entries)
+    return out
 
 
 def _event(event, **_):
@@ -145,7 +149,7 @@ def pytest_runtest_protocol(item, nextitem):
     _TESTS[item.nodeid] = {"wall_s": time.perf_counter() - wall,
                            "cpu_s": time.process_time() - cpu,
                            "children_cpu_s": _children_cpu() - children,
-                           **{k: after[k] - before[k] for k in after}, **_traced_again()}
+                           **{k: after[k] - before[k] for k in after}, **_repeats()}
 
 
 def pytest_unconfigure(config):

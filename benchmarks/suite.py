@@ -32,21 +32,17 @@ import glob
 import json
 import os
 import re
-import resource
 import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
+from _suite_plugin import _children_cpu  # (this folder: the script's own)
+
 ROOT = Path(__file__).resolve().parents[1]
 _SPLIT = ("trace_s", "lower_s", "compile_s")  # (compile_s: compiling or loading)
 _COUNTED = ("compiled", "loaded", "jaxdyn_loaded")
-
-
-def _rusage_children() -> float:
-    r = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return r.ru_utime + r.ru_stime
 
 
 def _add(into: dict, test: dict) -> None:
@@ -55,7 +51,7 @@ def _add(into: dict, test: dict) -> None:
         into[k] = into.get(k, 0) + test[k]
 
 
-def _cost(item) -> float:  # a test's or module's CPU time, with the processes it started
+def _costliest_first(item) -> float:  # a test's or module's CPU time, with its processes'
     return -(item[1]["cpu_s"] + item[1]["children_cpu_s"])
 
 
@@ -76,12 +72,12 @@ def main(argv: list[str]) -> int:
                "JAXDYN_CACHE_DIR": str(cache),
                "PYTHONPATH": os.pathsep.join(filter(None, (str(ROOT / "benchmarks"),
                                                            os.environ.get("PYTHONPATH"))))}
-        cpu0, t0 = _rusage_children(), time.perf_counter()
+        cpu0, t0 = _children_cpu(), time.perf_counter()
         proc = subprocess.run(
             [sys.executable, "-m", "pytest", "-q", "-p", "_suite_plugin",
              "-p", "no:cacheprovider", *args.pytest_args],
             cwd=ROOT, env=env, capture_output=True, text=True)
-        wall, cpu = time.perf_counter() - t0, _rusage_children() - cpu0
+        wall, cpu = time.perf_counter() - t0, _children_cpu() - cpu0
         processes = [json.loads(Path(p).read_text())
                      for p in glob.glob(str(profile / "process-*.json"))]
     processes = ([p for p in processes if p["role"] == "worker"]  # (xdist's workers; without
@@ -108,9 +104,9 @@ def main(argv: list[str]) -> int:
         "workers": _rounded(workers),
         "other_processes_cpu_s": round(cpu - workers["cpu_s"], 1),
         "modules": {m: _rounded(v) for m, v in
-                    sorted(modules.items(), key=_cost)},
+                    sorted(modules.items(), key=_costliest_first)},
         "tests": {k: _rounded(v) for k, v in
-                  sorted(tests.items(), key=_cost)[:args.top]},
+                  sorted(tests.items(), key=_costliest_first)[:args.top]},
         **{what: {k: {n: v[n] for n in (what, f"{what}_s", f"{what}_names") if n in v}
                   for k, v in sorted(tests.items(), key=lambda kv: -kv[1][f"{what}_s"])
                   [:args.top] if v[what]}

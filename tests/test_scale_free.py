@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from helpers import DEFAULT_RTOL, WITHIN_RTOL
 from hypothesis import HealthCheck, given, settings, strategies as st
+from test_cli import run_cli as run_command
 
 import jaxdyn as jd
 
@@ -230,10 +231,9 @@ def test_implicit_solver_in_natural_scales():
 def run_cli(capsys):
     """The command in this process (`jaxdyn._cli.main`, as `test_cli.py` runs it): its exit
     status and its output."""
-    from test_cli import run_cli as run
 
     def run_it(*args):
-        status, out, err = run(capsys, *args)
+        status, out, err = run_command(capsys, *args)
         return SimpleNamespace(returncode=status, stdout=out, stderr=err)
 
     return run_it
