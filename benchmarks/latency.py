@@ -1,8 +1,9 @@
 """Latency: what a notebook or command-line user waits for.
 
-- **Imports**: `python -c "import jax"`, `"import jaxdyn"` (public names load on first use)
-  and `"import jaxdyn._simulate"` (the integration stack: diffrax, equinox...), medians of
-  fresh interpreters.
+- **Imports**: `python -c "import jax"`, `"import jaxdyn"` (public names load on first use),
+  `"import jaxdyn._simulate"` (the integration stack: diffrax, equinox...) and `"import
+  ml_dtypes"` (JAX's dtypes, part of `import jax`: 0.6-0.9 s in version 0.7.0, 5 ms in
+  0.6.0), medians of fresh interpreters, and the versions of the libraries imported.
 - **Commands**: each command in a fresh process, cold (an empty persistent compilation cache)
   and warm (the same cache, second invocation): wall time from outside, and the command's own
   split into trace, lower, compile and run where it reports one (`jaxdyn run`). With
@@ -69,12 +70,19 @@ def _wall(argv, env=None, repeats=1, cwd=None):
     return statistics.median(times), out
 
 
+# Where an interpreter's jaxdyn is, and the versions of what importing it loads: JAX's
+# import time depends on them (ml_dtypes 0.7.0 alone takes 0.6-0.9 s, 0.6.0 5 ms).
+_VERSIONS = ("import json, importlib.metadata as m, jaxdyn; print(json.dumps({'jaxdyn': "
+             "jaxdyn.__file__, **{p: m.version(p) for p in ('jax', 'jaxlib', 'ml_dtypes', "
+             "'numpy', 'diffrax', 'equinox')}}))")
+
+
 def imports(repeats):
     py = sys.executable
-    out = {}
+    out = {"versions": json.loads(_wall([py, "-c", _VERSIONS])[1])}
     for name, code in (("jax", "import jax"), ("jaxdyn", "import jaxdyn"),
                        ("jaxdyn_integration", "import jaxdyn._simulate"),
-                       ("python", "pass")):
+                       ("ml_dtypes", "import ml_dtypes"), ("python", "pass")):
         out[name + "_s"] = _wall([py, "-c", code], repeats=repeats)[0]
     out["jaxdyn_over_jax"] = out["jaxdyn_s"] / out["jax_s"]
     out["integration_over_jax"] = out["jaxdyn_integration_s"] / out["jax_s"]
@@ -125,9 +133,10 @@ def commands(quick, baseline=None, rounds=1):
     if baseline:
         codes["baseline"] = baseline
     # The commands run in the temporary folder: from a source checkout, `python -m` would
-    # import the checkout's jaxdyn whatever the interpreter. Each code's jaxdyn is reported.
-    where = {code: _wall([python, "-c", "import jaxdyn; print(jaxdyn.__file__)"],
-                         cwd=tmp)[1].strip() for code, python in codes.items()}
+    # import the checkout's jaxdyn whatever the interpreter. Each code's jaxdyn is reported,
+    # with the versions of the libraries its imports load (`_VERSIONS`).
+    where = {code: json.loads(_wall([python, "-c", _VERSIONS], cwd=tmp)[1])
+             for code, python in codes.items()}
     runs = {(name, code): {"cold": [], "warm": []} for name in cases for code in codes}
     splits = {}
     for r in range(rounds):
