@@ -4,7 +4,6 @@ closed form for the free body, the fall-time quadrature for the rod, the analyti
 rotor momenta `h = (I_i - I_K) W`."""
 
 import json
-from types import SimpleNamespace
 
 import diffrax as dfx
 import jax.numpy as jnp
@@ -12,7 +11,7 @@ import numpy as np
 import pytest
 from helpers import DEFAULT_RTOL, WITHIN_RTOL
 from hypothesis import HealthCheck, given, settings, strategies as st
-from test_cli import run_cli as run_command
+from test_cli import run_cli
 
 import jaxdyn as jd
 
@@ -227,38 +226,26 @@ def test_implicit_solver_in_natural_scales():
     assert max(errs) < WITHIN_RTOL * DEFAULT_RTOL
 
 
-@pytest.fixture
-def run_cli(capsys):
-    """The command in this process (`jaxdyn._cli.main`, as `test_cli.py` runs it): its exit
-    status and its output."""
-
-    def run_it(*args):
-        status, out, err = run_command(capsys, *args)
-        return SimpleNamespace(returncode=status, stdout=out, stderr=err)
-
-    return run_it
-
-
-def test_cli_rod_at_1e_12_reports_and_agrees(run_cli):
-    p = run_cli("run", "falling-rod", "--set", "theta0=1e-12", "--json")
-    assert p.returncode == 0, p.stderr
-    out = json.loads(p.stdout)
+def test_cli_rod_at_1e_12_reports_and_agrees(capsys):
+    status, text, err = run_cli(capsys, "run", "falling-rod", "--set", "theta0=1e-12", "--json")
+    assert status == 0, err
+    out = json.loads(text)
     assert out["relative_difference"]["impact_time"] < 1e-9
     assert abs(out["impact_time"] / out["reference"]["impact_time"] - 1) < 1e-9
-    assert "warning" not in p.stderr
+    assert "warning" not in err
 
 
-def test_cli_rod_that_has_not_landed_by_t1_says_so(run_cli):
+def test_cli_rod_that_has_not_landed_by_t1_says_so(capsys):
     # A rod 1000 m long lands after the scene's t1 = 10 s: the run has no impact to print
     # beside the reference's, and says so on stderr instead of printing None beside it.
-    p = run_cli("run", "falling-rod", "--set", "length=1000", "--json")
-    assert p.returncode == 0, p.stderr
-    out = json.loads(p.stdout)
+    status, text, err = run_cli(capsys, "run", "falling-rod", "--set", "length=1000", "--json")
+    assert status == 0, err
+    out = json.loads(text)
     assert out["impact_time"] is None and out["t_final"] == out["t1"] == 10
     assert out["reference"]["impact_time"] > 10
     assert ("impact_rate, impact_time: not reached by this run (it ended at t_final=10)"
-            in p.stderr)
-    assert p.stderr.count("\n") == 1
+            in err)
+    assert err.count("\n") == 1
 
 
 def test_a_rod_that_never_falls_has_no_reference_to_miss():
@@ -273,15 +260,15 @@ def test_a_rod_that_never_falls_has_no_reference_to_miss():
     assert warn_on_disagreement(report, 1e-10, 2.0) == []
 
 
-def test_cli_free_body_reports_its_closed_form(run_cli):
-    p = run_cli("run", "torque-free", "--json", "--set", "rtol=1e-3")
-    assert p.returncode == 0, p.stderr
-    out = json.loads(p.stdout)
+def test_cli_free_body_reports_its_closed_form(capsys):
+    status, text, err = run_cli(capsys, "run", "torque-free", "--json", "--set", "rtol=1e-3")
+    assert status == 0, err
+    out = json.loads(text)
     ref = np.asarray(out["reference"]["omega_final"])
     diff = np.max(np.abs(np.asarray(out["omega_final"]) - ref)) / np.max(np.abs(ref))
     assert out["relative_difference"]["omega_final"] == pytest.approx(diff, rel=1e-6)
     # a loose run beside its reference: warned about on stderr when past what rtol promises
-    assert ("warning: omega_final differs" in p.stderr) == (diff > 100 * 1e-3)
+    assert ("warning: omega_final differs" in err) == (diff > 100 * 1e-3)
 
 
 def test_warning_names_the_value():
