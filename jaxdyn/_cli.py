@@ -1,5 +1,6 @@
 """The `jaxdyn` command. Each subcommand is a module in `jaxdyn/_commands/` that defines
-`HELP`, `add_arguments(parser)` and `run(args) -> int`; they are discovered automatically.
+`HELP`, `add_arguments(parser)` and `run(args) -> int`, and `LAPACK = True` where its programs
+call LAPACK (`jaxdyn._xla.lapack_without_scipy_linalg`); they are discovered automatically.
 
 Errors: invalid input exits with status 2 and a one-line message; a failure at run time (a
 runtime check inside `jit`, an exhausted step budget) exits with status 1 and a one-line message.
@@ -87,6 +88,10 @@ def main(argv: list[str] | None = None) -> int:
     commands = _commands()
     args = _build_parser(commands, argv).parse_args(argv)
     args.t_start = t_start
+    if getattr(commands[args.command], "LAPACK", False):
+        from ._xla import lapack_without_scipy_linalg
+
+        lapack_without_scipy_linalg()  # (before JAX needs LAPACK: see `jaxdyn._xla`)
     from ._errors import ParameterError
 
     # The one error boundary: every failure ends in one line on stderr, never a traceback.

@@ -48,6 +48,7 @@ import copyreg
 import functools
 import hashlib
 import importlib.metadata
+import math
 import os
 import pickle
 import platform
@@ -495,7 +496,13 @@ def _compile_and_store(path: Path | None, program, args, found: list):
     deserialised from that cache serialises without its kernels ("Function ... not found"
     when run; measured with jax 0.10), so only a fresh compilation is stored; nor where it
     calls custom kernels other than LAPACK's (only those are known to be set up on loading,
-    below), nor where the outputs' tree does not survive a pickle."""
+    below), nor where the outputs' tree does not survive a pickle.
+
+    A program that is stored here is not also written to JAX's persistent cache (its
+    executable would be serialised twice, on the caller's path: about 70 ms of a cold
+    `jaxdyn run`, measured on 7 Dec 2026); one that is not stored is written there as usual.
+    (Should its serialisation fail after all, the program is in neither, and a later process
+    compiles it again.)"""
     try:
         lowered = program.lower(*args)
     except Exception:  # called as usual
@@ -504,27 +511,48 @@ def _compile_and_store(path: Path | None, program, args, found: list):
     _start_queued()  # (their tracing runs while XLA compiles this one)
     _listen_for_cache_hits()
     _HITS.count = 0  # (this thread's compilation's, not a prepared one's)
+    lapack = None if path is None else _storable(lowered, found[0])
     try:
-        compiled = lowered.compile()
+        with contextlib.nullcontext() if lapack is None else _not_in_jax_cache():
+            compiled = lowered.compile()
     except Exception:
         return None
-    hits = _HITS.count
-    if path is None or hits:
-        return compiled
-    targets = {a or b for a, b in _CUSTOM_CALL.findall(lowered.as_text())}
-    if not all(t.startswith("lapack_") for t in targets):
+    if lapack is None or _HITS.count:
         return compiled
     try:
         from jax.experimental import serialize_executable
 
-        if pickle.loads(pickle.dumps(found[0])) != found[0]:  # (a tree lost in a pickle)
-            return compiled
-        blob = pickle.dumps((serialize_executable.serialize(compiled), found[0],
-                             bool(targets)))
+        blob = pickle.dumps((serialize_executable.serialize(compiled), found[0], lapack))
     except Exception:  # not serialisable: used, not kept
         return compiled
     _write(path, blob)
     return compiled
+
+
+def _storable(lowered, out_tree) -> bool | None:
+    """Whether a lowered program calls LAPACK's kernels, if it can be stored (`None`: it
+    calls other custom kernels, or its outputs' tree does not survive a pickle)."""
+    targets = {a or b for a, b in _CUSTOM_CALL.findall(lowered.as_text())}
+    if not all(t.startswith("lapack_") for t in targets):
+        return None
+    try:
+        if pickle.loads(pickle.dumps(out_tree)) != out_tree:  # (a tree lost in a pickle)
+            return None
+    except Exception:
+        return None
+    return bool(targets)
+
+
+def _not_in_jax_cache():
+    """Within (this thread): XLA's compilations are not written to JAX's persistent cache
+    (JAX's minimum compile time for an entry set to infinity, a per-thread setting); nothing
+    where this JAX has no such setting."""
+    try:
+        from jax._src.config import persistent_cache_min_compile_time_secs  # pyright: ignore
+
+        return persistent_cache_min_compile_time_secs(math.inf)
+    except Exception:
+        return contextlib.nullcontext()
 
 
 _HITS = threading.local()  # JAX's persistent-cache hits of this thread's compilations

@@ -189,6 +189,7 @@ def test_every_program_of_a_command_is_cached_on_the_second_run(tmp_path):
     assert re.search(r"Writing .* to persistent compilation cache", first)
     assert list((tmp_path / "jaxdyn-programs").glob("*.exe"))  # this machine's programs
     assert not re.search(r"Writing .* to persistent compilation cache", second)
+    assert not re.search(r"Not writing persistent cache entry .* host callbacks", first)
     assert not re.search(r"Not writing persistent cache entry", second)
     compiled = re.findall(r"Compiling (jit\([^)]*\))", second)
     hits = re.findall(r"Persistent compilation cache hit for '([^']+)'", second)

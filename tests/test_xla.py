@@ -50,3 +50,55 @@ def test_the_command_gives_the_same_numbers_with_either_emitters(tmp_path):
         assert ours[key] == pytest.approx(default[key], rel=1e-12, abs=1e-14), key
     for out in outs:
         assert max(out["relative_difference"].values()) < 1e-9, out["relative_difference"]
+
+
+_LAPACK_CHECK = r"""
+import sys
+from jaxdyn._xla import lapack_without_scipy_linalg
+loaded = lapack_without_scipy_linalg()
+import jax
+jax.config.update("jax_enable_x64", True)
+import jax.numpy as jnp
+import numpy as np
+a = np.array([[4.0, 1.0, 0.5], [1.0, 3.0, 0.2], [0.5, 0.2, 2.0]])
+b = np.array([1.0, -2.0, 0.5])
+x = np.asarray(jnp.linalg.solve(a, b))  # LU: LAPACK's getrf and getrs
+w = np.asarray(jnp.linalg.eigh(a)[0])  # syevd
+ran = "scipy.linalg._basic" in sys.modules  # scipy.linalg's package run by then?
+{mode}
+print(loaded, ran, float(np.max(np.abs(a @ x - b))),
+      float(np.max(np.abs(w - np.linalg.eigvalsh(a)))))
+"""
+
+_LAPACK_MODES = {
+    # A later user of SciPy finds everything where an ordinary import puts it.
+    "package": "import scipy.linalg\n"
+               "assert scipy.linalg.cython_blas is sys.modules['scipy.linalg.cython_blas']\n"
+               "assert np.allclose(scipy.linalg.solve(a, b), x)",
+    "as": "import scipy.linalg.cython_lapack as cl\n"
+          "assert cl is sys.modules['scipy.linalg.cython_lapack']\n"
+          "assert hasattr(sys.modules['scipy.linalg'], 'lu_factor')",
+    "integrate": "from scipy.integrate import solve_ivp\n"
+                 "assert abs(solve_ivp(lambda t, y: -y, (0, 1), [1.0], method='Radau', rtol=1e-10,"
+                 " atol=1e-12).y[0, -1] - np.exp(-1)) < 1e-8",
+    # Where SciPy's package is already imported, nothing is done.
+    "before": "",
+}
+
+
+@pytest.mark.parametrize("mode", sorted(_LAPACK_MODES))
+def test_lapack_is_loaded_without_scipy_linalgs_package(mode):
+    """`lapack_without_scipy_linalg`: JAX's LAPACK kernels work (a solve and an eigen-
+    decomposition against NumPy's), `scipy.linalg`'s package has not run, and a later import
+    of SciPy (the package, a module of it by `import ... as`, `scipy.integrate`) finds what an
+    ordinary import gives."""
+    script = _LAPACK_CHECK.format(mode=_LAPACK_MODES[mode])
+    if mode == "before":
+        script = "import scipy.linalg\n" + script
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    loaded, ran, residual, eig = proc.stdout.split()
+    assert loaded == ("False" if mode == "before" else "True")
+    assert ran == ("True" if mode == "before" else "False")
+    assert float(residual) < 1e-14 and float(eig) < 1e-13

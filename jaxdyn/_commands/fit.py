@@ -12,6 +12,7 @@ from typing import Any
 from ._common import emit, enable_x64, parse_sets
 
 HELP = "fit a scene's parameters and initial state to sampled data (CSV)"
+LAPACK = True  # (its programs solve linear systems: `jaxdyn._xla`)
 
 
 

@@ -6,6 +6,7 @@ from typing import Any
 from ._common import emit, enable_x64
 
 HELP = "relative equilibria and separatrix energies of a body or gyrostat; critical rotor momenta"
+LAPACK = True  # (its programs solve linear systems: `jaxdyn._xla`)
 
 
 def add_arguments(parser) -> None:
