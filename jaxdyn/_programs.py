@@ -211,6 +211,8 @@ class StoredProgram:
 
     def _ready(self, args, path: Path):
         loaded = _read_executable(path)
+        if loaded is _UNLOADABLE:  # (removed): compiled into JAX's cache, not stored again,
+            return self._compiled(args, None)  # so no process compiles it afresh after
         if loaded is None:
             return self._compiled(args, path)
         compiled, out_tree = loaded
@@ -501,8 +503,11 @@ def _compile_and_store(path: Path | None, program, args, found: list):
     A program that is stored here is not also written to JAX's persistent cache (its
     executable would be serialised twice, on the caller's path: about 70 ms of a cold
     `jaxdyn run`, measured on 7 Dec 2026); one that is not stored is written there as usual.
-    (Should its serialisation fail after all, the program is in neither, and a later process
-    compiles it again.)"""
+    So that no program is compiled afresh by every process, one whose stored file could not
+    be loaded (`_UNLOADABLE`) is compiled into JAX's cache and not stored again (`_ready`),
+    nothing is kept out of JAX's cache where the folder cannot be written, and one whose
+    serialisation or writing fails leaves a marker (`.unstorable`) under which later
+    processes compile it into JAX's cache."""
     try:
         lowered = program.lower(*args)
     except Exception:  # called as usual
@@ -511,7 +516,7 @@ def _compile_and_store(path: Path | None, program, args, found: list):
     _start_queued()  # (their tracing runs while XLA compiles this one)
     _listen_for_cache_hits()
     _HITS.count = 0  # (this thread's compilation's, not a prepared one's)
-    lapack = None if path is None else _storable(lowered, found[0])
+    lapack = None if path is None else _storable(lowered, found[0], path)
     try:
         with contextlib.nullcontext() if lapack is None else _not_in_jax_cache():
             compiled = lowered.compile()
@@ -523,15 +528,25 @@ def _compile_and_store(path: Path | None, program, args, found: list):
         from jax.experimental import serialize_executable
 
         blob = pickle.dumps((serialize_executable.serialize(compiled), found[0], lapack))
-    except Exception:  # not serialisable: used, not kept
+    except Exception:  # not serialisable: used, not kept (nor tried again: the marker)
+        _write(_marker(path), b"")
         return compiled
-    _write(path, blob)
+    if not _write(path, blob):
+        _write(_marker(path), b"")
     return compiled
 
 
-def _storable(lowered, out_tree) -> bool | None:
-    """Whether a lowered program calls LAPACK's kernels, if it can be stored (`None`: it
-    calls other custom kernels, or its outputs' tree does not survive a pickle)."""
+def _marker(path: Path) -> Path:
+    """The file that says the program of `path` could not be stored (`_compile_and_store`)."""
+    return path.with_suffix(".unstorable")
+
+
+def _storable(lowered, out_tree, path: Path) -> bool | None:
+    """Whether a lowered program calls LAPACK's kernels, if it can be stored at `path`
+    (`None`: it calls other custom kernels, its outputs' tree does not survive a pickle, its
+    folder cannot be written, or an earlier process could not store it)."""
+    if not _writable(path.parent) or _marker(path).exists():
+        return None
     targets = {a or b for a, b in _CUSTOM_CALL.findall(lowered.as_text())}
     if not all(t.startswith("lapack_") for t in targets):
         return None
@@ -541,6 +556,14 @@ def _storable(lowered, out_tree) -> bool | None:
     except Exception:
         return None
     return bool(targets)
+
+
+def _writable(directory: Path) -> bool:
+    try:
+        directory.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return False
+    return os.access(directory, os.W_OK)
 
 
 def _not_in_jax_cache():
@@ -577,9 +600,13 @@ def _listen_for_cache_hits() -> None:
         _LISTENING.append(listen)
 
 
+_UNLOADABLE = object()  # a stored file that this JAX could not load (`_read_executable`)
+
+
 def _read_executable(path: Path):
-    """The compiled program stored by `_compile_and_store` and the tree of its outputs, or
-    `None` (not stored, unreadable, or not loadable by this JAX)."""
+    """The compiled program stored by `_compile_and_store` and the tree of its outputs,
+    `None` (not stored, or not readable), or `_UNLOADABLE` (read but not loadable by this
+    JAX: removed)."""
     import time
 
     start = time.perf_counter()
@@ -601,15 +628,16 @@ def _read_executable(path: Path):
             payload, in_tree, flat_tree, execution_devices=[_default_device()])
     except Exception:  # unreadable (truncated, another JAX): removed, compiled again
         _remove(path)
-        return None
+        return _UNLOADABLE
     jax.monitoring.record_event_duration_secs("/jaxdyn/programs/load_duration",
                                               time.perf_counter() - start)
     return compiled, out_tree
 
 
-def _write(path: Path, data: bytes) -> None:
+def _write(path: Path, data: bytes) -> bool:
     """`data` written to `path` atomically (concurrent writers agree); nothing where the
-    folder cannot be written (read-only, full: the program is still used, only not kept)."""
+    folder cannot be written (read-only, full: the program is still used, only not kept).
+    Whether it was written."""
     # (One temporary file per writer: two threads of a process may store one program.)
     tmp = path.with_suffix(f"{path.suffix}.{os.getpid()}.{threading.get_ident()}.tmp")
     try:
@@ -618,6 +646,8 @@ def _write(path: Path, data: bytes) -> None:
         os.replace(tmp, path)
     except OSError:
         _remove(tmp)
+        return False
+    return True
 
 
 def _remove(path: Path) -> None:

@@ -17,9 +17,11 @@ The command's processes also load LAPACK for JAX without importing `scipy.linalg
 LAPACK's routines from SciPy's two Cython modules, `scipy.linalg.cython_blas` and
 `cython_lapack`, and importing them runs `scipy.linalg`'s package, 0.2-0.27 s of a `jaxdyn fit`
 or `jaxdyn separatrix` (measured on 7 Dec 2026, SciPy 1.17), against 20-35 ms to load the two
-modules alone. Only the command does this, in processes that run no code of the user's.
+modules alone. Only the command does this, in processes that run no code of the user's (the
+function says why it is not for a user's process).
 """
 
+import importlib.machinery
 import importlib.util
 import mmap
 import os
@@ -68,25 +70,34 @@ def lapack_without_scipy_linalg() -> bool:
     """Load SciPy's `scipy.linalg.cython_blas` and `cython_lapack` (where JAX's LAPACK kernels
     find their routines) without running `scipy.linalg`'s package: that package is put in
     `sys.modules` first, to be run when first used (`importlib.util.LazyLoader`), and each
-    module is registered under its name and as the package's attribute as it is loaded, so
-    that any later import of SciPy finds what it would have found. Nothing where
-    `scipy.linalg` is imported already, or SciPy's files are not where expected (JAX then
-    imports it as usual). Returns whether both were loaded this way."""
+    module is registered under its name and as the package's attribute as it is loaded.
+    Nothing where `scipy.linalg` is imported already, or SciPy's files are not found (JAX
+    then imports it as usual). Returns whether both were loaded this way.
+
+    For the command's processes only: the imports of SciPy that jaxdyn's commands make later
+    (`scipy.integrate`, the package itself, a module by `import ... as`) find what an ordinary
+    import gives (`tests/test_xla.py`), but Python 3.11's lazy loading is not safe for a user's
+    code in general: threads that first touch the package at once can see it half run, a
+    module of the package imported before the package itself runs twice (two classes of one
+    name), and an error while the package runs is not raised again on a second import."""
     if "scipy.linalg" in sys.modules:
         return False
     try:
         spec = importlib.util.find_spec("scipy")  # (finds it without importing it)
         if spec is None or not spec.submodule_search_locations:
             return False
-        base = Path(spec.submodule_search_locations[0]) / "linalg"
-        files = {name: next((p for p in base.iterdir() if p.name.startswith(name + ".")
-                             and p.suffix in _SUFFIXES), None) for name in _CYTHON}
-        if not (base / "__init__.py").exists() or None in files.values():
+        base = [str(Path(spec.submodule_search_locations[0]) / "linalg")]
+        # (The finder picks the file built for this interpreter, as an import would.)
+        specs = {name: importlib.machinery.PathFinder.find_spec(f"scipy.linalg.{name}", base)
+                 for name in _CYTHON}
+        if None in specs.values() or not (Path(base[0]) / "__init__.py").exists():
             return False
         import scipy
 
+        if "scipy.linalg" in sys.modules:
+            return False
         package = importlib.util.spec_from_file_location(
-            "scipy.linalg", base / "__init__.py", submodule_search_locations=[str(base)])
+            "scipy.linalg", Path(base[0]) / "__init__.py", submodule_search_locations=base)
         lazy = importlib.util.LazyLoader(package.loader)
         package.loader = lazy
         linalg = importlib.util.module_from_spec(package)
@@ -96,9 +107,8 @@ def lapack_without_scipy_linalg() -> bool:
     lazy.exec_module(linalg)  # (run when an attribute is first read)
     scipy.linalg = linalg
     try:
-        for name, path in files.items():
+        for name, module_spec in specs.items():
             full = f"scipy.linalg.{name}"
-            module_spec = importlib.util.spec_from_file_location(full, path)
             module = importlib.util.module_from_spec(module_spec)
             sys.modules[full] = module
             try:

@@ -243,7 +243,7 @@ def test_a_program_held_by_the_compilation_cache_is_not_stored_compiled(stored, 
     # LAPACK's): JAX's persistent cache holds it then (a program that jaxdyn stores is not
     # written there).
     with monkeypatch.context() as m:
-        m.setattr(_programs, "_storable", lambda lowered, tree: None)
+        m.setattr(_programs, "_storable", lambda lowered, tree, path: None)
         out = _programs.StoredProgram("test-hit", "hit", (), program)(np.ones(5))
     assert not list(stored.glob("*.exe"))
     # The same program where it could be stored: read from JAX's cache, so not stored.
@@ -254,6 +254,60 @@ def test_a_program_held_by_the_compilation_cache_is_not_stored_compiled(stored, 
         # Compiled afresh (another program, so not in JAX's cache): stored.
         _programs.StoredProgram("test-hit", "hit", (), lambda x: program(x + 1.0))(np.ones(5))
         assert len(list(stored.glob("*.exe"))) == 1
+
+
+def _jax_cache_hits(run):
+    """`run()` and the number of JAX persistent-cache hits it made."""
+    hits = []
+
+    def listen(event, **kwargs):
+        if event == "/jax/compilation_cache/cache_hits":
+            hits.append(1)
+
+    jax.monitoring.register_event_listener(listen)
+    try:
+        out = run()
+    finally:
+        jax.monitoring.unregister_event_listener(listen)
+    return out, len(hits)
+
+
+@pytest.mark.skipif(not jax.config.jax_compilation_cache_dir, reason="needs JAX's cache on")
+@pytest.mark.parametrize("failure", ["load", "serialise"])
+def test_a_program_that_cannot_be_kept_is_not_compiled_afresh_by_every_process(
+        stored, monkeypatch, failure):
+    """A stored program that this JAX cannot load, or one that cannot be serialised, ends in
+    JAX's persistent cache (a stored program is otherwise kept out of it), so a later process
+    (here: a new program object) reads it from there instead of compiling it afresh."""
+    from jax.experimental import serialize_executable
+
+    def program(x):
+        return {"y": jax.numpy.sin(x) * 2.0 + {"load": 1.0, "serialise": 3.0}[failure]}
+
+    def call():
+        return _programs.StoredProgram("test-kept", failure, (), program)(np.ones(4))
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("as another JAX would")
+
+    if failure == "load":
+        out = call()  # stored
+        assert len(list(stored.glob("*.exe"))) == 1
+        with monkeypatch.context() as m:
+            m.setattr(serialize_executable, "deserialize_and_load", broken)
+            again, hits = _jax_cache_hits(call)  # removed, compiled into JAX's cache
+        assert not list(stored.glob("*.exe")) and hits == 0
+    else:
+        with monkeypatch.context() as m:
+            m.setattr(serialize_executable, "serialize", broken)
+            out = call()  # not stored: a marker says so
+        assert not list(stored.glob("*.exe")) and list(stored.glob("*.unstorable"))
+        again, hits = _jax_cache_hits(call)  # compiled into JAX's cache, not stored
+        assert not list(stored.glob("*.exe")) and hits == 0
+    later, hits = _jax_cache_hits(call)
+    assert hits == 1 and not list(stored.glob("*.exe"))
+    for result in (again, later):
+        np.testing.assert_array_equal(result["y"], out["y"])
 
 
 def test_stored_programs_run_on_a_machine_with_several_devices(tmp_path):

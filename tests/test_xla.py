@@ -70,29 +70,31 @@ print(loaded, ran, float(np.max(np.abs(a @ x - b))),
       float(np.max(np.abs(w - np.linalg.eigvalsh(a)))))
 """
 
-_LATER_IMPORTS = (
-    # A later user of SciPy finds everything where an ordinary import puts it: a module by
-    # `import ... as` (which runs the package), `scipy.integrate`, the package's names.
-    "import scipy.linalg.cython_lapack as cl\n"
-    "assert cl is sys.modules['scipy.linalg.cython_lapack']\n"
-    "assert hasattr(sys.modules['scipy.linalg'], 'lu_factor')\n"
-    "from scipy.integrate import solve_ivp\n"
-    "assert abs(solve_ivp(lambda t, y: -y, (0, 1), [1.0], method='Radau', rtol=1e-10,"
-    " atol=1e-12).y[0, -1] - np.exp(-1)) < 1e-8\n"
-    "import scipy.linalg\n"
-    "assert scipy.linalg.cython_blas is sys.modules['scipy.linalg.cython_blas']\n"
-    "assert np.allclose(scipy.linalg.solve(a, b), x)"
-)
-_LAPACK_MODES = {"later imports": _LATER_IMPORTS,
-                 "before": ""}  # (SciPy's package imported first: nothing is done)
+_LAPACK_MODES = {
+    # A later import of SciPy, each the first to touch the package (as jaxdyn's commands
+    # meet them), finds what an ordinary import gives.
+    "integrate first": (
+        "from scipy.integrate import solve_ivp\n"
+        "assert abs(solve_ivp(lambda t, y: -y, (0, 1), [1.0], method='Radau', rtol=1e-10,"
+        " atol=1e-12).y[0, -1] - np.exp(-1)) < 1e-8\n"
+        "import scipy.linalg\n"
+        "assert scipy.linalg.cython_blas is sys.modules['scipy.linalg.cython_blas']\n"
+        "assert np.allclose(scipy.linalg.solve(a, b), x)"),
+    "module first": (
+        "import scipy.linalg.cython_lapack as cl\n"
+        "assert cl is sys.modules['scipy.linalg.cython_lapack']\n"
+        "import scipy.linalg\n"
+        "assert np.allclose(scipy.linalg.lu_solve(scipy.linalg.lu_factor(a), b), x)"),
+    "before": "",  # (SciPy's package imported first: nothing is done)
+}
 
 
 @pytest.mark.parametrize("mode", sorted(_LAPACK_MODES))
 def test_lapack_is_loaded_without_scipy_linalgs_package(mode):
     """`lapack_without_scipy_linalg`: JAX's LAPACK kernels work (a solve and an eigen-
     decomposition against NumPy's), `scipy.linalg`'s package has not run, and a later import
-    of SciPy (the package, a module of it by `import ... as`, `scipy.integrate`) finds what an
-    ordinary import gives."""
+    of SciPy (`scipy.integrate`, or a module by `import ... as`, then the package) finds what
+    an ordinary import gives."""
     script = _LAPACK_CHECK.format(mode=_LAPACK_MODES[mode])
     if mode == "before":
         script = "import scipy.linalg\n" + script
@@ -103,3 +105,32 @@ def test_lapack_is_loaded_without_scipy_linalgs_package(mode):
     assert loaded == ("False" if mode == "before" else "True")
     assert ran == ("True" if mode == "before" else "False")
     assert float(residual) < 1e-14 and float(eig) < 1e-13
+
+
+def test_the_commands_that_call_lapack_never_run_scipy_linalgs_package():
+    """The commands whose programs call LAPACK declare it (`LAPACK = True`); `jaxdyn
+    separatrix` (optimistix's Newton steps: LU) then loads LAPACK's modules and never runs
+    `scipy.linalg`'s package, and gives the equilibria of its closed form."""
+    from jaxdyn import _cli
+
+    commands = _cli._commands()
+    assert [n for n, m in commands.items() if getattr(m, "LAPACK", False)] == [
+        "fit", "separatrix"]
+    script = (
+        "import sys, json, io, contextlib\n"
+        "from jaxdyn._cli import main\n"
+        "out = io.StringIO()\n"
+        "with contextlib.redirect_stdout(out):\n"
+        "    status = main(['separatrix', '--inertia', '1,2,3', '--json', '--no-cache'])\n"
+        "energies = sorted({round(e['energy'], 12) for e in json.loads(out.getvalue())"
+        "['equilibria']})\n"
+        "print(status, 'scipy.linalg.cython_lapack' in sys.modules,"
+        " 'scipy.linalg._basic' in sys.modules, energies)\n"
+    )
+    proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    status, loaded, ran, energies = proc.stdout.split(maxsplit=3)
+    assert (status, loaded, ran) == ("0", "True", "False")
+    # |H| = 1: an equilibrium about axis k has energy 1 / (2 I_k).
+    assert energies.strip() == str([round(1 / 6, 12), 0.25, 0.5])
