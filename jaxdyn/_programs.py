@@ -528,10 +528,9 @@ def _compile_and_store(path: Path | None, program, args, found: list):
         from jax.experimental import serialize_executable
 
         blob = pickle.dumps((serialize_executable.serialize(compiled), found[0], lapack))
-    except Exception:  # not serialisable: used, not kept (nor tried again: the marker)
-        _write(_marker(path), b"")
-        return compiled
-    if not _write(path, blob):
+    except Exception:  # not serialisable: used, not kept
+        blob = None
+    if blob is None or not _write(path, blob):  # (nor tried again: the marker)
         _write(_marker(path), b"")
     return compiled
 
