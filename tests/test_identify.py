@@ -413,6 +413,7 @@ def test_gyro_bias_and_moments_intervals_cover_the_truth():
     _coverage(hits, SENSOR_SEEDS)
 
 
+@pytest.mark.optimized  # (fits over noise seeds: its time is running, not compiling)
 def test_star_tracker_quaternions_intervals_cover_the_truth():
     """Star-tracker attitudes only (noise 1 mrad per axis, random signs): residuals are the
     rotation between measured and predicted attitudes, so the signs do not matter (a fit

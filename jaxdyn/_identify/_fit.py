@@ -1098,7 +1098,8 @@ def fit(
       single shooting. Given `horizons`, single shooting.
 
     - `posterior`: a number of draws to sample from the posterior of the fitted quantities by
-      NUTS (blackjax, `pip install 'jaxdyn[posterior]'`) after `warmup` adaptation steps,
+      NUTS (blackjax, `pip install 'jaxdyn[posterior]'`) after `warmup` adaptation steps
+      (trajectories of at most 127 leapfrog steps; the draws' at most 1023),
       through the same residuals: a Gaussian likelihood with the fitted noise variance, a
       prior uniform in the principal moments (over the physical bodies) and over the axes of
       a [`jaxdyn.ValidInertia`][] and a weakly informative Gaussian prior (standard

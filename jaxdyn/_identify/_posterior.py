@@ -34,7 +34,8 @@ draws (both moments 79 %).
 Several chains (NUTS, Hoffman and Gelman 2014), side by side on a CPU's cores,
 started dispersed around the optimum (twice the Gauss--Newton spread), each with the
 Gauss--Newton covariance in the sampling coordinates as its (dense) inverse mass matrix and its
-step size adapted by dual averaging during warm-up; gradients come from forward mode through
+step size adapted by dual averaging during warm-up (whose trajectories are bounded more tightly
+than the draws', `WARMUP_DOUBLINGS`); gradients come from forward mode through
 the integrator, like the fit's Jacobians. The chains' agreement is checked by the split
 potential scale reduction (R-hat, Gelman et al. 2013) and their effective sample size.
 """
@@ -51,20 +52,25 @@ from .._errors import warn
 
 RHAT_MAX = 1.05  # above this split R-hat, the chains disagree: a warning
 ACCEPTANCE_MIN = 0.3  # below this mean acceptance rate (NUTS aims at 0.8), a chain is stuck
-# The most trajectory doublings of one NUTS step: at most 2**10 - 1 = 1023 leapfrog steps (Stan's
+# The most trajectory doublings of one NUTS draw: at most 2**10 - 1 = 1023 leapfrog steps (Stan's
 # and blackjax's default). Draws that reach it are counted (`"max_depth_draws"`) and said in a
-# warning where they are many. Most of the sampling time on the nearly axisymmetric body of
-# `benchmarks/identify.py --coverage` is the warm-up's (57 leapfrog steps per warm-up iteration on
-# average against 29 per draw, up to 1023). Not a collapse of dual averaging's first steps:
-# recorded per warm-up iteration on notebook 09's body (29 Nov 2026), the step sizes stayed within
-# 0.01-14, and the chains with deep trees settled at steps of 0.03-0.04, where the Gauss--Newton
-# mass matrix does not fit that posterior. Measured on the coverage benchmark's 12 seeds (28 Nov
-# 2026) and not kept: a bound of 7 doublings (127 steps) with the warm-up started from Hoffman and
-# Gelman's reasonable step size took 46 % fewer gradients per fit, but its central 90 % intervals
-# held the truth in 19 of 24 against 24 of 24 (the truncated trajectories explore less, and 50
-# draws per chain are few); the reasonable start alone took 16 % fewer, holding it in 20 of 24.
-# Each is within the binomial bound of 90 % (+-18 % for 24); the gain did not justify the doubt.
+# warning where they are many. Measured on the coverage benchmark's 12 seeds (28 Nov 2026) and
+# not kept: a bound of 7 doublings for the draws as well (with the warm-up started from Hoffman
+# and Gelman's reasonable step size) held the truth in 19 of 24 central 90 % intervals against
+# 24 of 24 (truncated trajectories explore less, and 50 draws per chain are few); the
+# reasonable start alone took 16 % fewer gradients, holding it in 20 of 24.
 MAX_DOUBLINGS = 10
+# The most doublings of one warm-up step: 2**7 - 1 = 127 leapfrog steps. Most of the sampling
+# time on a nearly axisymmetric body was the warm-up's: while dual averaging still searches, a
+# chain whose step size is briefly small builds trees of up to 1023 steps (notebook 09's body,
+# key 3: one chain's 100 warm-up steps took about 10000 leapfrog steps in 12 of them, its 50
+# draws 750). The warm-up only adapts the step size and brings the chain to the posterior's
+# bulk, so its trajectories are bounded; the draws keep NUTS's full bound, so they are exact
+# NUTS as before. (blackjax's own staged warm-up bounds its trees to 5 doublings for the same
+# reason.) Measured on the near-plate body of tests/test_posterior.py, keys 1, 2, 4 after a
+# first fit that compiled: a fit with its posterior in 11.7-18.4 s against 25.6-31.7 s, split
+# R-hat 1.018-1.035 against 0.996-1.067 (see benchmarks/latency-log.md, 7 Dec 2026, s38).
+WARMUP_DOUBLINGS = 7
 DEPTH_WARN = 0.1  # a warning when more than this fraction of a chain's draws reach the bound
 DISPERSION = 2.0  # chains start at this many Gauss--Newton standard deviations
 
@@ -176,18 +182,20 @@ def _chain_in_standard_promotion(sampled, w, free_index, w_start, free, ts, data
                                         weights, s2)
     da_init, da_update, da_final = blackjax.adaptation.step_size.dual_averaging_adaptation(0.8)
 
-    def nuts(step_size):
+    def nuts(step_size, doublings):
         return blackjax.nuts(log_density, step_size=step_size, inverse_mass_matrix=inverse_mass,
-                             max_num_doublings=MAX_DOUBLINGS)
+                             max_num_doublings=doublings)
 
     # Warm-up and draws in one scan (the step size adapted by dual averaging while warming
-    # up, then fixed at its final value): NUTS's step, which holds the integration and its
-    # derivatives inside the trajectory's nested loops, is compiled once instead of twice
-    # (the same steps as the two scans this replaces).
+    # up, then fixed at its final value; the warm-up's trees bounded by WARMUP_DOUBLINGS, the
+    # draws' by MAX_DOUBLINGS, one or the other taken by `lax.cond`).
     def one_step(carry, xs):
         state, da, final = carry
         k, warming = xs
-        state, info = nuts(jnp.where(warming, jnp.exp(da.log_step_size), final)).step(k, state)
+        step_size = jnp.where(warming, jnp.exp(da.log_step_size), final)
+        state, info = jax.lax.cond(
+            warming, lambda: nuts(step_size, WARMUP_DOUBLINGS).step(k, state),
+            lambda: nuts(step_size, MAX_DOUBLINGS).step(k, state))
         da = jax.tree.map(lambda new, old: jnp.where(warming, new, old),
                           da_update(da, info.acceptance_rate), da)
         final = jnp.where(warming, da_final(da), final)
@@ -202,7 +210,8 @@ def _chain_in_standard_promotion(sampled, w, free_index, w_start, free, ts, data
     da = da_init(jnp.asarray(1.0, start.dtype))
     keys = jnp.concatenate([jax.random.split(k_warm, warmup), jax.random.split(k_draw, draws)])
     warming = jnp.arange(warmup + draws) < warmup
-    _, (vs, *out) = jax.lax.scan(one_step, (nuts(1.0).init(start), da, da_final(da)),
+    _, (vs, *out) = jax.lax.scan(one_step, (nuts(1.0, MAX_DOUBLINGS).init(start), da,
+                                            da_final(da)),
                                  (keys, warming))
     warm_steps = out[2][:warmup]
     vs, out = vs[warmup:], [x[warmup:] for x in out]
