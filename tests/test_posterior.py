@@ -147,7 +147,8 @@ def test_shape_prior_is_uniform_in_the_moments_and_the_axes():
     assert log_prior(jnp.asarray(coords(np.array([-0.01, 0.5, 0, 0, 0]), np.eye(3)))) == -np.inf
 
 
-def test_posterior_near_equal_moments_and_a_flat_plate_agrees_with_importance_sampling():
+def test_posterior_near_equal_moments_and_a_flat_plate_agrees_with_importance_sampling(
+        monkeypatch):
     # Moments 1, 1.001, 2: nearly axisymmetric and nearly a flat plate (I3 = I1 + I2), where
     # the moments-and-axes coordinates are singular. The reference: the posterior of the
     # shape and initial rates (likelihood of the rates with the fitted noise variance,
@@ -162,9 +163,25 @@ def test_posterior_near_equal_moments_and_a_flat_plate_agrees_with_importance_sa
     data = euler_rates(tensor, w0, ts)
     data = data + 1e-3 * np.random.default_rng(9003).normal(size=data.shape)
     scene = jd.Scene(jd.RigidBody(tensor))
+    from jaxdyn._identify import _posterior
+
+    steps = {}  # each warm-up step's and each draw's leapfrog steps, per chain
+
+    def diagnostics(x, energy, acceptance, divergent, draw_steps, deep, warm_steps, names):
+        steps.update(warm=np.asarray(warm_steps), draws=np.asarray(draw_steps))
+        return _posterior_diagnostics(x, energy, acceptance, divergent, draw_steps, deep,
+                                      warm_steps, names)
+
+    _posterior_diagnostics = _posterior.diagnostics
+    monkeypatch.setattr(_posterior, "diagnostics", diagnostics)
     res = jd.fit(scene, ts, {"omega": data}, **FIT_BODY, restarts=1, horizons=(1.0,),
                  **POSTERIOR, key=3)
     diag = res.posterior_diagnostics
+    # A warm-up step's trajectory is bounded to 2**7 - 1 leapfrog steps, a draw's to 1023:
+    # before that bound, one chain of this fit took 1023 steps in 7 of its 100 warm-up steps.
+    assert steps["warm"].shape == (4, 100) and steps["draws"].shape == (4, 50)
+    assert steps["warm"].max() <= 2**_posterior.WARMUP_DOUBLINGS - 1, steps["warm"].max()
+    assert _posterior.WARMUP_DOUBLINGS < _posterior.MAX_DOUBLINGS == 10
     # The chains agree, and take tens of leapfrog steps per draw at most (in the
     # moments-and-axes coordinates one chain took 508 on this record, wandering on the
     # flat-plate plateau). About 6 with a prior uniform over the tensor; about 20 with the
