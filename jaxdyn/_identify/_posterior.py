@@ -60,16 +60,16 @@ ACCEPTANCE_MIN = 0.3  # below this mean acceptance rate (NUTS aims at 0.8), a ch
 # 24 of 24 (truncated trajectories explore less, and 50 draws per chain are few); the
 # reasonable start alone took 16 % fewer gradients, holding it in 20 of 24.
 MAX_DOUBLINGS = 10
-# The most doublings of one warm-up step: 2**7 - 1 = 127 leapfrog steps. Most of the sampling
-# time on a nearly axisymmetric body was the warm-up's: while dual averaging still searches, a
-# chain whose step size is briefly small builds trees of up to 1023 steps (notebook 09's body,
-# key 3: one chain's 100 warm-up steps took about 10000 leapfrog steps in 12 of them, its 50
-# draws 750). The warm-up only adapts the step size and brings the chain to the posterior's
-# bulk, so its trajectories are bounded; the draws keep NUTS's full bound, so they are exact
-# NUTS as before. (blackjax's own staged warm-up bounds its trees to 5 doublings for the same
-# reason.) Measured on the near-plate body of tests/test_posterior.py, keys 1, 2, 4 after a
-# first fit that compiled: a fit with its posterior in 11.7-18.4 s against 25.6-31.7 s, split
-# R-hat 1.018-1.035 against 0.996-1.067 (see benchmarks/latency-log.md, 7 Dec 2026, s38).
+# The most doublings of one warm-up step: 2**7 - 1 = 127 leapfrog steps. Most of the sampling time
+# on a nearly axisymmetric body was the warm-up's: while dual averaging still searches, a chain
+# whose step size is briefly small builds trees of up to 1023 steps (the near-plate body of
+# tests/test_posterior.py, key 3: one chain's 100 warm-up steps took about 12800 leapfrog steps,
+# 9700 of them in 13 steps, its 50 draws 750). The warm-up only adapts the step size and brings the
+# chain to the posterior's bulk, so its trajectories are bounded; the draws keep NUTS's full bound,
+# so they are exact NUTS as before. (blackjax's own staged warm-up bounds its trees to 5 doublings
+# for the same reason.) Measured on the near-plate body of tests/test_posterior.py, keys 1, 2, 4
+# after a first fit that compiled: a fit with its posterior in 11.7-18.4 s against 25.6-31.7 s,
+# split R-hat 1.018-1.035 against 0.996-1.067 (see benchmarks/latency-log.md, 7 Dec 2026, s38).
 WARMUP_DOUBLINGS = 7
 DEPTH_WARN = 0.1  # a warning when more than this fraction of a chain's draws reach the bound
 DISPERSION = 2.0  # chains start at this many Gauss--Newton standard deviations
