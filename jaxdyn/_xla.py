@@ -86,18 +86,19 @@ def lapack_without_scipy_linalg() -> bool:
         spec = importlib.util.find_spec("scipy")  # (finds it without importing it)
         if spec is None or not spec.submodule_search_locations:
             return False
-        base = [str(Path(spec.submodule_search_locations[0]) / "linalg")]
+        base = Path(spec.submodule_search_locations[0]) / "linalg"
         # (The finder picks the file built for this interpreter, as an import would.)
-        specs = {name: importlib.machinery.PathFinder.find_spec(f"scipy.linalg.{name}", base)
+        specs = {name: importlib.machinery.PathFinder.find_spec(f"scipy.linalg.{name}",
+                                                                [str(base)])
                  for name in _CYTHON}
-        if None in specs.values() or not (Path(base[0]) / "__init__.py").exists():
+        if None in specs.values() or not (base / "__init__.py").exists():
             return False
         import scipy
 
         if "scipy.linalg" in sys.modules:
             return False
         package = importlib.util.spec_from_file_location(
-            "scipy.linalg", Path(base[0]) / "__init__.py", submodule_search_locations=base)
+            "scipy.linalg", base / "__init__.py", submodule_search_locations=[str(base)])
         lazy = importlib.util.LazyLoader(package.loader)
         package.loader = lazy
         linalg = importlib.util.module_from_spec(package)

@@ -166,13 +166,12 @@ def test_posterior_near_equal_moments_and_a_flat_plate_agrees_with_importance_sa
     from jaxdyn._identify import _posterior
 
     steps = {}  # each warm-up step's and each draw's leapfrog steps, per chain
+    recorded = _posterior.diagnostics
 
     def diagnostics(x, energy, acceptance, divergent, draw_steps, deep, warm_steps, names):
         steps.update(warm=np.asarray(warm_steps), draws=np.asarray(draw_steps))
-        return _posterior_diagnostics(x, energy, acceptance, divergent, draw_steps, deep,
-                                      warm_steps, names)
+        return recorded(x, energy, acceptance, divergent, draw_steps, deep, warm_steps, names)
 
-    _posterior_diagnostics = _posterior.diagnostics
     monkeypatch.setattr(_posterior, "diagnostics", diagnostics)
     res = jd.fit(scene, ts, {"omega": data}, **FIT_BODY, restarts=1, horizons=(1.0,),
                  **POSTERIOR, key=3)
