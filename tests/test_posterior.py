@@ -255,6 +255,67 @@ def test_posterior_near_equal_moments_and_a_flat_plate_agrees_with_importance_sa
         assert np.all(np.abs(q_got - q_ref) < 4 * error * sd), (k, q_got, q_ref, sd, error)
 
 
+class _Stop(Exception):
+    pass
+
+
+def test_mass_matrix_on_the_flat_plate_is_the_laplace_approximation(monkeypatch):
+    """On a body fitted on the flat plate (moments 1 : 2 : 3, I3 = I1 + I2: the optimum on
+    the edge of the physical bodies, where the fit's shape logits run off towards infinity),
+    the sampler's inverse mass matrix is the Gauss--Newton covariance of its coordinates,
+    checked against one written here: finite differences of SciPy's rates with respect to
+    the test's own shape coordinates and initial rates, the noise variance from their
+    residuals. Carried over from the fit's coordinates by the (singular) Jacobian of the
+    change of coordinates it was round-off: a standard deviation 180 times the posterior's
+    in one shape direction, and NUTS's trajectories ran to their bound of 1023 leapfrog
+    steps. The sampler is stopped before its chains run (their cost is measured in
+    benchmarks/latency-log.md)."""
+    from jaxdyn._identify import _parameterisation, _posterior
+
+    w0 = np.array([0.7, 0.2, 0.6])
+    ts = np.linspace(0.0, 8.0, SAMPLES)
+    data = euler_rates(np.diag([1.0, 2.0, 3.0]), w0, ts)
+    data = data + 1e-3 * np.random.default_rng(1).normal(size=data.shape)
+    seen = {}
+
+    def stop(cov, v0, key, chains):
+        seen.update(cov=np.asarray(cov), v0=np.asarray(v0))
+        raise _Stop
+
+    monkeypatch.setattr(_posterior, "_mass_and_starts", stop)
+    with pytest.raises(_Stop), warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # (the fit's notes on the plate, if any)
+        jd.fit(jd.Scene(jd.RigidBody(np.diag([1.0, 2.0, 3.0]))), ts, {"omega": data},
+               **FIT_BODY, restarts=1, horizons=(1.0,), **POSTERIOR, key=0)
+    cov, v0 = seen["cov"], seen["v0"]
+    assert cov.shape == (8, 8)  # five shape coordinates and three initial rates (no scale)
+
+    # The sampler's shape coordinates `c` as the test's (`_shape`): an affine map.
+    shaped = _parameterisation._ShapeInertia()
+
+    def test_shape(c):
+        return _shape(np.asarray(shaped(jnp.concatenate([jnp.zeros(1), jnp.asarray(c)]))))
+
+    base = test_shape(np.zeros(5))
+    L = np.stack([test_shape(e) - base for e in np.eye(5)], axis=1)
+    T = np.zeros((8, 8))
+    T[:5, :5], T[5:, 5:] = L, np.eye(3)
+    cov = T @ cov @ T.T
+    x0 = np.concatenate([test_shape(v0[:5]), v0[5:]])
+    assert np.linalg.eigvalsh(np.eye(3) - _tensor(x0[:5]))[0] > -1e-9  # on the plate
+
+    def rates(x):
+        return euler_rates(_tensor(x[:5]), x[5:], ts).ravel()
+
+    r0 = rates(x0) - data.ravel()
+    h = 1e-6
+    J = np.stack([(rates(x0 + h * e) - rates(x0 - h * e)) / (2 * h) for e in np.eye(8)], 1)
+    reference = np.sum(r0**2) / (r0.size - 8) * np.linalg.inv(J.T @ J)
+    # Every direction's variance as the reference's, to 10 % (the generalised eigenvalues).
+    ratio = np.linalg.eigvals(np.linalg.solve(reference, cov)).real
+    assert np.all(np.abs(ratio - 1) < 0.1), ratio
+
+
 def test_a_direction_the_data_do_not_determine_keeps_the_priors_spread():
     """A rod's length and g both fitted: the data determine g / length only. Along
     log length + log g the posterior is the prior's (standard deviation 10 in each log
@@ -294,9 +355,10 @@ def test_diagnostics_warn_on_disagreeing_stuck_and_capped_chains():
     deep = np.zeros((chains, draws), bool)
     energy = rng.normal(size=(chains, draws))
 
-    def warnings_of(x, acceptance, deep):
+    def warnings_of(x, acceptance, deep, divergent=None):
         report = _posterior.diagnostics(
-            x, energy=energy, acceptance=acceptance, divergent=np.zeros_like(deep),
+            x, energy=energy, acceptance=acceptance,
+            divergent=np.zeros_like(deep) if divergent is None else divergent,
             steps=np.full((chains, draws), 7), deep=deep,
             warm_steps=np.full((chains, 10), 7), names=["a", "b"])
         with warnings.catch_warnings(record=True) as record:
@@ -323,6 +385,24 @@ def test_diagnostics_warn_on_disagreeing_stuck_and_capped_chains():
     assert "chain(s) [1]" in stuck and "{1: 0.25}" in stuck
     assert "chain(s) [2]" in capped and "1023 leapfrog steps" in capped
     assert "{2: 10} of 50 draws" in capped
+
+    # Most draws divergent (a posterior against the physical bodies' edge): said where the
+    # chains disagree (the remedy is more draws), not where they agree.
+    divergent = np.zeros((chains, draws), bool)
+    divergent[:, : draws // 2 + 1] = True
+    x = rng.normal(size=(chains, draws, 2))
+    report, messages = warnings_of(x, np.full((chains, draws), 0.8), np.zeros_like(deep),
+                                   divergent)
+    assert messages == [] and report["divergences"] == [draws // 2 + 1] * chains, messages
+    x[3, :, 0] += 1.5
+    report, messages = warnings_of(x, np.full((chains, draws), 0.8), np.zeros_like(deep),
+                                   divergent)
+    assert len(messages) == 1 and "104 of the 200 draws were divergent" in messages[0]
+    assert "flat plate" in messages[0] and "Sample longer" in messages[0]
+    divergent[:, draws // 2] = False  # half of them: not said
+    report, messages = warnings_of(x, np.full((chains, draws), 0.8), np.zeros_like(deep),
+                                   divergent)
+    assert len(messages) == 1 and "divergent" not in messages[0], messages
 
     x = rng.normal(size=(chains, draws, 2))
     x[0, 0, 1] = np.nan

@@ -32,6 +32,7 @@ rates, 6-9 unknowns, CPU):
 """
 
 import dataclasses
+import functools
 import math
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
@@ -439,6 +440,46 @@ def _summaries_and_derivatives(problem, u, free):
     return values, G
 
 
+def _covariances(R, free, s2):
+    """The Gauss--Newton covariance `s2 (R^T R)^+` of the free components from a square root
+    `R` of the normal matrix (zero rows and columns for the others), by the singular value
+    decomposition of `R` with its free columns scaled to unit norm (see `_uncertainty`);
+    the sampler's covariance, which gives the directions the data do not determine at all
+    the prior's spread; the components those directions involve; and the decomposition
+    `(W, d, norms, sv, vt, resolved)` (`W`'s rows: the directions over their singular
+    values; `d`: the columns' scales, `norms` their norms)."""
+    s2 = np.asarray(s2)
+    dtype = s2.dtype
+    eps = np.finfo(dtype).eps
+    R = np.where(free[None, :], np.asarray(R, dtype), 0.0).astype(dtype)
+    norms = np.sqrt(np.sum(R**2, axis=0))
+    d = np.where(norms > 0, 1.0 / np.where(norms > 0, norms, 1.0), 0.0).astype(dtype)
+    _, sv, vt = np.linalg.svd(R * d[None, :], full_matrices=False)
+    resolved = sv > R.shape[1] * eps * sv[0]
+    inv_sv = np.where(resolved, 1.0 / np.where(resolved, sv, 1.0), 0.0).astype(dtype)
+    W = (vt * inv_sv[:, None]) * d[None, :]  # rows: directions of u over their singular values
+    cov = s2 * (W.T @ W)
+    # The directions of `u` the data do not determine at all (unit rows; zero for the others
+    # and for fixed components): their components' covariance is undetermined (nan), and the
+    # sampler's covariance (its mass matrix and the spread of its starting points) gives them
+    # the prior's spread: with the pseudo-inverse's zero variance there, the chains started
+    # together along such a direction and hardly moved (a rod's length and g both fitted:
+    # the draws of log length spread 0.001 where the posterior spreads about 7, the prior's).
+    null = np.where(resolved[:, None], 0.0, vt * d[None, :]).astype(dtype)
+    size = np.sqrt(np.sum(null**2, axis=1, keepdims=True))
+    null = np.where(size > 0, null / np.where(size > 0, size, 1.0), 0.0).astype(dtype)
+    involved = np.any(np.abs(null) > np.sqrt(eps), axis=0)
+    sampling_cov = cov + dtype.type(PRIOR_SD**2) * (null.T @ null)
+    return cov, sampling_cov, involved, (W, d, norms, sv, vt, resolved)
+
+
+def _sampling_covariance(problem, u, *, free, ts, data, weights, s2):
+    """The posterior sampler's covariance of `u` (`_covariances`) from the residuals'
+    Jacobian at `u` (for `problem` in the sampler's coordinates)."""
+    _, J = _jacobian(problem, u, ts, data, weights)
+    return _covariances(np.linalg.qr(np.asarray(J), mode="r"), free, s2)[1]
+
+
 def _uncertainty(problem, u, free, R, rss, n_obs):
     """Gauss--Newton covariance of `u` and the 1-sigma intervals of the reported summaries,
     from a square root `R` of the normal matrix (`R^T R = J^T J`: the triangle of `J`'s QR
@@ -461,27 +502,9 @@ def _uncertainty(problem, u, free, R, rss, n_obs):
     dtype = np.dtype(u.dtype)
     eps = np.finfo(dtype).eps
     free = np.asarray(free)
-    R = np.where(free[None, :], np.asarray(R, dtype), 0.0).astype(dtype)
     dof = dtype.type(max(int(n_obs) - int(np.sum(free)), 1))
     s2 = np.asarray(rss, dtype) / dof
-    norms = np.sqrt(np.sum(R**2, axis=0))
-    d = np.where(norms > 0, 1.0 / np.where(norms > 0, norms, 1.0), 0.0).astype(dtype)
-    _, sv, vt = np.linalg.svd(R * d[None, :], full_matrices=False)
-    resolved = sv > u.shape[0] * eps * sv[0]
-    inv_sv = np.where(resolved, 1.0 / np.where(resolved, sv, 1.0), 0.0).astype(dtype)
-    W = (vt * inv_sv[:, None]) * d[None, :]  # rows: directions of u over their singular values
-    cov = s2 * (W.T @ W)
-    # The directions of `u` the data do not determine at all (unit rows; zero for the others
-    # and for fixed components): their components' covariance is undetermined (nan), and the
-    # sampler's covariance (its mass matrix and the spread of its starting points) gives them
-    # the prior's spread: with the pseudo-inverse's zero variance there, the chains started
-    # together along such a direction and hardly moved (a rod's length and g both fitted:
-    # the draws of log length spread 0.001 where the posterior spreads about 7, the prior's).
-    null = np.where(resolved[:, None], 0.0, vt * d[None, :]).astype(dtype)
-    size = np.sqrt(np.sum(null**2, axis=1, keepdims=True))
-    null = np.where(size > 0, null / np.where(size > 0, size, 1.0), 0.0).astype(dtype)
-    involved = np.any(np.abs(null) > np.sqrt(eps), axis=0)
-    sampling_cov = cov + dtype.type(PRIOR_SD**2) * (null.T @ null)
+    cov, _, involved, (W, d, norms, sv, vt, resolved) = _covariances(R, free, s2)
     cov = np.where(involved[:, None] | involved[None, :], np.nan, cov).astype(dtype)
     std = {}
     for key, g in G.items():
@@ -500,8 +523,7 @@ def _uncertainty(problem, u, free, R, rss, n_obs):
     # `sv` and `vt`: the conditioning of the free columns scaled to unit norm (a tiny singular
     # value is a combination of components that the data do not determine).
     # (Put on the device from NumPy: `jnp.asarray` compiles a program per shape.)
-    return (jax.device_put(cov), jax.device_put(sampling_cov), values, std, jax.device_put(s2),
-            sv, vt)
+    return jax.device_put(cov), values, std, jax.device_put(s2), sv, vt
 
 
 @stored_filter_jit
@@ -1427,14 +1449,16 @@ def fit(
     loss, u, R, rss, sums = (fitted[k] for k in ("loss", "u", "R", "rss", "sums"))
     rms_by_output, whiteness, systematic = (fitted[k] for k in ("rms_by_output", "whiteness",
                                                                 "systematic"))
-    cov, sampling_cov, values, std, s2, sv, vt = _uncertainty(problem, u, free, R, rss, n_obs)
+    cov, values, std, s2, sv, vt = _uncertainty(problem, u, free, R, rss, n_obs)
 
     draws, acceptance, leapfrogs, report = None, None, None, None
     if posterior:
         from ._posterior import sample
 
+        covariance = functools.partial(_sampling_covariance, free=free_np, ts=ts_p,
+                                       data=obs_p, weights=weights, s2=np.asarray(s2))
         draws, report = sample(problem, u.astype(u0.dtype), free_np, u0, ts_p, obs_p, weights,
-                               s2, sampling_cov, jax.random.fold_in(_key(key), 1), _summaries,
+                               s2, covariance, jax.random.fold_in(_key(key), 1), _summaries,
                                draws=posterior, warmup=warmup, chains=chains)
         acceptance = float(np.mean(report["acceptance"]))
         leapfrogs = float(np.mean(report["leapfrogs"]))
