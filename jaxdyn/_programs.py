@@ -328,6 +328,13 @@ def _start_queued() -> None:
         raise
 
 
+def start_prepared() -> None:
+    """Start preparing the queued programs (`StoredProgram.prepare`) now: for a caller about
+    to compile a program that is not stored (a posterior's chain), so that they are made
+    ready on the other core meanwhile, as when a stored program compiles."""
+    _start_queued()
+
+
 _SCOPE = threading.local()
 
 

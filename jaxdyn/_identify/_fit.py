@@ -448,9 +448,9 @@ def _covariances(R, free, s2):
     the prior's spread; the components those directions involve; and the decomposition
     `(W, d, norms, sv, vt, resolved)` (`W`'s rows: the directions over their singular
     values; `d`: the columns' scales, `norms` their norms)."""
-    s2 = np.asarray(s2)
-    dtype = s2.dtype
+    dtype = np.result_type(np.asarray(R), np.asarray(s2))
     eps = np.finfo(dtype).eps
+    s2 = np.asarray(s2, dtype)
     R = np.where(free[None, :], np.asarray(R, dtype), 0.0).astype(dtype)
     norms = np.sqrt(np.sum(R**2, axis=0))
     d = np.where(norms > 0, 1.0 / np.where(norms > 0, norms, 1.0), 0.0).astype(dtype)
@@ -460,11 +460,12 @@ def _covariances(R, free, s2):
     W = (vt * inv_sv[:, None]) * d[None, :]  # rows: directions of u over their singular values
     cov = s2 * (W.T @ W)
     # The directions of `u` the data do not determine at all (unit rows; zero for the others
-    # and for fixed components): their components' covariance is undetermined (nan), and the
-    # sampler's covariance (its mass matrix and the spread of its starting points) gives them
-    # the prior's spread: with the pseudo-inverse's zero variance there, the chains started
-    # together along such a direction and hardly moved (a rod's length and g both fitted:
-    # the draws of log length spread 0.001 where the posterior spreads about 7, the prior's).
+    # and for fixed components): their components' covariance is undetermined (`_uncertainty`
+    # reports it as nan), and the sampler's covariance (its mass matrix and the spread of its
+    # starting points) gives them the prior's spread: with the pseudo-inverse's zero variance
+    # there, the chains started together along such a direction and hardly moved (a rod's
+    # length and g both fitted: the draws of log length spread 0.001 where the posterior
+    # spreads about 7, the prior's).
     null = np.where(resolved[:, None], 0.0, vt * d[None, :]).astype(dtype)
     size = np.sqrt(np.sum(null**2, axis=1, keepdims=True))
     null = np.where(size > 0, null / np.where(size > 0, size, 1.0), 0.0).astype(dtype)
@@ -473,11 +474,28 @@ def _covariances(R, free, s2):
     return cov, sampling_cov, involved, (W, d, norms, sv, vt, resolved)
 
 
-def _sampling_covariance(problem, u, *, free, ts, data, weights, s2):
-    """The posterior sampler's covariance of `u` (`_covariances`) from the residuals'
-    Jacobian at `u` (for `problem` in the sampler's coordinates)."""
-    _, J = _jacobian(problem, u, ts, data, weights)
-    return _covariances(np.linalg.qr(np.asarray(J), mode="r"), free, s2)[1]
+def _sampling_covariance(sampled, w, *, fitted, R, free, ts, data, weights, s2,
+                         prepare=False):
+    """The posterior sampler's covariance (`_covariances`) of its coordinates `w` (of the
+    problem `sampled`, the fit's `fitted` with each parameterisation's `sampling` one): from
+    the fit's square root `R` of the normal matrix where those are the fit's own
+    coordinates, else from the residuals' Jacobian at `w` (compiled once per problem
+    structure, like the fit's). `prepare`: only have that Jacobian's program made ready on
+    another core (`StoredProgram.prepare`)."""
+    if all(s is m for s, m in zip(sampled.maps, fitted.maps)):
+        return None if prepare else _covariances(R, free, s2)[1]
+    if prepare:
+        return _jacobian.prepare(sampled, w, ts, data, weights)
+    _, J = _jacobian(sampled, w, ts, data, weights)
+    J = np.asarray(J)
+    if not np.all(np.isfinite(J)):
+        raise RuntimeError(
+            "posterior: the residuals' derivatives over the whole record are not finite "
+            "numbers at the optimum (the sampler integrates the record in one piece, and "
+            "their sensitivities overflowed, as on a long record of an unstable motion): "
+            "the posterior cannot be sampled here; fit a shorter record, or use the "
+            "Gauss-Newton intervals (fit without posterior=)")
+    return _covariances(np.linalg.qr(J, mode="r"), free, s2)[1]
 
 
 def _uncertainty(problem, u, free, R, rss, n_obs):
@@ -1455,8 +1473,9 @@ def fit(
     if posterior:
         from ._posterior import sample
 
-        covariance = functools.partial(_sampling_covariance, free=free_np, ts=ts_p,
-                                       data=obs_p, weights=weights, s2=np.asarray(s2))
+        covariance = functools.partial(_sampling_covariance, fitted=problem, R=R, free=free_np,
+                                       ts=ts_p, data=obs_p, weights=weights,
+                                       s2=np.asarray(s2))
         draws, report = sample(problem, u.astype(u0.dtype), free_np, u0, ts_p, obs_p, weights,
                                s2, covariance, jax.random.fold_in(_key(key), 1), _summaries,
                                draws=posterior, warmup=warmup, chains=chains)

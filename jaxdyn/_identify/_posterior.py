@@ -49,6 +49,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._errors import warn
+from .._programs import start_prepared
 
 RHAT_MAX = 1.05  # above this split R-hat, the chains disagree: a warning
 ACCEPTANCE_MIN = 0.3  # below this mean acceptance rate (NUTS aims at 0.8), a chain is stuck
@@ -182,7 +183,7 @@ def _chain_in_standard_promotion(sampled, w, free_index, w_start, free, ts, data
     the leapfrog steps of each warm-up step."""
     blackjax = _import_blackjax()
     log_density, full = _log_density(sampled, w, free_index, w_start, free, ts, data,
-                                        weights, s2)
+                                     weights, s2)
     da_init, da_update, da_final = blackjax.adaptation.step_size.dual_averaging_adaptation(0.8)
 
     def nuts(step_size, doublings):
@@ -268,7 +269,8 @@ def sample(problem, u, free, u_start, ts, data, weights, s2, covariance, key, su
     `free` is the NumPy mask of the fitted components of `u`, `u_start` the fit's starting
     point (the prior's centre), `covariance(sampled, w)` the Gauss--Newton covariance of the
     coordinates `w` of the problem `sampled` at `w` (with the prior's spread along the
-    directions the data do not determine)."""
+    directions the data do not determine); `covariance(sampled, w, prepare=True)` has the
+    program it needs, if any, made ready on another core (`StoredProgram.prepare`)."""
     free = np.asarray(free)
     maps = tuple(m.sampling(f) for m, f in zip(problem.maps, _split(problem, free)))
     if any(s.size() != m.size() for s, m in zip(maps, problem.maps)):
@@ -283,12 +285,15 @@ def sample(problem, u, free, u_start, ts, data, weights, s2, covariance, key, su
     # logits run off towards infinity, `G` is singular (a singular value of 3e-12 on the
     # 1 : 2 : 3 plate) and the fit's variance along that logit 8e14, and their product was
     # round-off: a standard deviation of 0.077 for a shape coordinate whose posterior spreads
-    # 4e-4, so NUTS's trajectories ran to their bound of 1023 leapfrog steps (split R-hat
-    # 8.7). On the nearly flat body of notebook 09 the two agree to four digits.
-    k_start, k_chains = jax.random.split(key)
-    cov = np.asarray(covariance(sampled, w))
-    inverse_mass, starts = _mass_and_starts(jax.device_put(cov[index][:, index]), w[index],
-                                            k_start, chains)
+    # 4e-4, so NUTS's draws ran to their bound of 1023 leapfrog steps (4 chains of 50 draws:
+    # 711 steps per draw, 68 % of the draws at the bound, 207 s against 37 s). On the nearly
+    # flat body of notebook 09 the two agree to four digits.
+    # Its Jacobian's program, where one is needed, is compiled on the other core while the
+    # chains' program compiles here. A first fit with its posterior on the nearly
+    # axisymmetric body of tests/test_posterior.py (2 cores, compilation cache on): 33.3-35.8
+    # s against 34.0-37.5 s before that Jacobian was needed; with the cache off, where
+    # nothing is prepared (`StoredProgram.prepare`), 36.6-38.1 s against 30.8-32.6 s.
+    covariance(sampled, w, prepare=True)
     # One compiled program, called for each chain on a thread of its own. Vmapped, the
     # chains' nested loops (NUTS's trajectories around the integrator's steps) were measured
     # to run tens of times slower on a CPU; XLA:CPU runs a call on one core without Python's
@@ -303,15 +308,25 @@ def sample(problem, u, free, u_start, ts, data, weights, s2, covariance, key, su
     common = jax.tree.map(
         lambda x: jnp.asarray(x) if isinstance(x, (np.ndarray, np.generic)) else x,
         (sampled, w, index, _to_sampling(problem, sampled, u_start), free, ts, data, weights,
-         s2, inverse_mass))
+         s2))
+    k_start, k_chains = jax.random.split(key)
     keys = jax.random.split(k_chains, chains)
     static = dict(draws=per_chain, warmup=warmup)  # (the compiled program ignores their values)
+    if not jax.config.jax_disable_jit:
+        # Lowered for the shapes of the inverse mass matrix and a start (their values are
+        # the program's inputs), before they are known.
+        shaped = jnp.zeros((index.size, index.size), w.dtype), jnp.zeros(index.size, w.dtype)
+        lowered = _chain.lower(*common, *shaped, keys[0], **static)
+        start_prepared()
+        chain = lowered.compile()
+    cov = np.asarray(covariance(sampled, w))
+    inverse_mass, starts = _mass_and_starts(jax.device_put(cov[index][:, index]), w[index],
+                                            k_start, chains)
+    common = (*common, inverse_mass)
     if jax.config.jax_disable_jit:  # (no compiled program: each chain run as Python)
         def run(starts, keys):
             return [_chain(*common, start, k, **static) for start, k in zip(starts, keys)]
     else:
-        chain = _chain.lower(*common, starts[0], keys[0], **static).compile()
-
         def run(starts, keys):
             with concurrent.futures.ThreadPoolExecutor(len(keys)) as pool:
                 return list(pool.map(
@@ -366,10 +381,10 @@ def warn_on_diagnostics(report):
         # 4 chains of 50 draws: split R-hat 1.6-1.75, every draw divergent; of 400 draws:
         # 1.08). Said, since "sample longer" is then the remedy, not a sign of a bad fit.
         divergent = sum(report["divergences"])
-        edge = (f" {divergent} of the {chains * per_chain} draws were divergent, as a "
-                "trajectory that leaves the physical bodies is (for an inertia, past the flat "
-                "plate I3 = I1 + I2): where the posterior lies against that edge, the chains "
-                "move in short steps and need more draws to agree."
+        edge = (f" {divergent} of the {chains * per_chain} draws were divergent. A "
+                "trajectory that leaves the prior's support (a body that is not physical, as "
+                "past the flat plate I3 = I1 + I2) is: where the posterior lies against that "
+                "edge, the chains move in short steps and need more draws to agree."
                 if divergent > EDGE_SHARE * chains * per_chain else "")
         warn(
             f"posterior: the halves of the {chains} chain(s) disagree (split R-hat above "
