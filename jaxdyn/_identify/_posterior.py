@@ -320,8 +320,8 @@ def sample(problem, u, free, u_start, ts, data, weights, s2, covariance, key, su
         start_prepared()
         chain = lowered.compile()
     cov = np.asarray(covariance(sampled, w))
-    inverse_mass, starts = _mass_and_starts(jax.device_put(cov[index][:, index]), w[index],
-                                            k_start, chains)
+    inverse_mass, starts = _mass_and_starts(
+        jax.device_put(cov[index][:, index].astype(w.dtype)), w[index], k_start, chains)
     common = (*common, inverse_mass)
     if jax.config.jax_disable_jit:  # (no compiled program: each chain run as Python)
         def run(starts, keys):
