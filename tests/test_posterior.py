@@ -350,6 +350,36 @@ def test_sampling_covariance_reuses_the_fits_and_refuses_non_finite_derivatives(
         _fit._sampling_covariance(sampled, np.zeros(4), **kw)
 
 
+def test_a_body_that_is_not_physical_is_not_integrated():
+    """Outside the physical bodies the log density is -inf with a zero gradient, from the
+    prior alone: the residuals are evaluated at the optimum instead (a body that breaks the
+    triangle inequality can cost an integration its whole step budget). Here residuals that
+    are not numbers outside the physical shapes stand for such an integration."""
+    from types import SimpleNamespace
+
+    from jaxdyn._identify import _parameterisation, _posterior
+
+    shape = _parameterisation._ShapeInertia()
+
+    def residuals(x, ts, data, weights):  # NaN where N's smallest eigenvalue is negative
+        lam = jnp.linalg.eigvalsh(shape.shape_of(x[1:6]))[0]
+        return jnp.sqrt(lam) * jnp.ones(3) + x[6:] - data
+
+    sampled = SimpleNamespace(maps=(shape, jd.Unconstrained()), sizes=(6, 1),
+                              residuals=residuals)
+    w = jnp.array([0.0, 0.1, 0.05, 0.0, 0.02, 0.0, 0.3])  # a physical body
+    free = jnp.ones(7, bool)
+    log_density, full = _posterior._log_density(sampled, w, np.arange(7), w, free, None,
+                                                 jnp.zeros(3), None, 1.0)
+    value, grad = jax.jit(jax.value_and_grad(log_density))(w)
+    assert np.isfinite(value) and np.all(np.isfinite(grad))
+    outside = w.at[2].set(0.6)  # a shape coordinate far past the flat plate
+    assert jnp.linalg.eigvalsh(shape.shape_of(outside[1:6]))[0] < 0
+    assert np.all(np.isnan(residuals(outside, None, jnp.zeros(3), None)))
+    value, grad = jax.jit(jax.value_and_grad(log_density))(outside)
+    assert value == -np.inf and np.all(grad == 0), (value, grad)
+
+
 def test_a_direction_the_data_do_not_determine_keeps_the_priors_spread():
     """A rod's length and g both fitted: the data determine g / length only. Along
     log length + log g the posterior is the prior's (standard deviation 10 in each log
