@@ -254,7 +254,7 @@ _LOCK = threading.Lock()
 
 class _Pending:
     """A program `prepare`d: queued, then made ready on a worker thread once a compilation
-    starts (`_start_queued`). Its thread traces only under the caller's configuration
+    starts (`start_prepared`). Its thread traces only under the caller's configuration
     (settings such as `jax.default_device` are per thread): otherwise it does nothing, and
     the call makes the program itself. The thread is not a daemon: a process that ends while
     it compiles waits for it."""
@@ -310,8 +310,10 @@ class _Pending:
         return self.result
 
 
-def _start_queued() -> None:
-    """Start preparing the queued programs (called as a compilation starts)."""
+def start_prepared() -> None:
+    """Start preparing the queued programs (`StoredProgram.prepare`): called as a stored
+    program's compilation starts, and by a caller about to compile a program that is not
+    stored (a posterior's chain), so that they are made ready on the other core meanwhile."""
     queued: list = []
     started = 0
     try:
@@ -326,13 +328,6 @@ def _start_queued() -> None:
             rest.args = rest.then = None
             rest.done.set()
         raise
-
-
-def start_prepared() -> None:
-    """Start preparing the queued programs (`StoredProgram.prepare`) now: for a caller about
-    to compile a program that is not stored (a posterior's chain), so that they are made
-    ready on the other core meanwhile, as when a stored program compiles."""
-    _start_queued()
 
 
 _SCOPE = threading.local()
@@ -520,7 +515,7 @@ def _compile_and_store(path: Path | None, program, args, found: list):
     except Exception:  # called as usual
         return None
     _announce_lowered(program, args, found)
-    _start_queued()  # (their tracing runs while XLA compiles this one)
+    start_prepared()  # (their tracing runs while XLA compiles this one)
     _listen_for_cache_hits()
     _HITS.count = 0  # (this thread's compilation's, not a prepared one's)
     lapack = None if path is None else _storable(lowered, found[0], path)

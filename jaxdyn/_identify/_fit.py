@@ -1474,8 +1474,7 @@ def fit(
         from ._posterior import sample
 
         covariance = functools.partial(_sampling_covariance, fitted=problem, R=R, free=free_np,
-                                       ts=ts_p, data=obs_p, weights=weights,
-                                       s2=np.asarray(s2))
+                                       ts=ts_p, data=obs_p, weights=weights, s2=s2)
         draws, report = sample(problem, u.astype(u0.dtype), free_np, u0, ts_p, obs_p, weights,
                                s2, covariance, jax.random.fold_in(_key(key), 1), _summaries,
                                draws=posterior, warmup=warmup, chains=chains)

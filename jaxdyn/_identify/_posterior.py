@@ -156,8 +156,7 @@ def _mass_and_starts(cov, v0, key, chains):
     # was measured to need about 290 leapfrog steps per draw on the well-determined body of
     # tests/test_posterior.py, against a handful here.) It comes from the residuals' Jacobian
     # in the sampling coordinates themselves (`sample`).
-    inverse_mass = cov
-    inverse_mass = 0.5 * (inverse_mass + inverse_mass.T)
+    inverse_mass = 0.5 * (cov + cov.T)
     inverse_mass = inverse_mass + 1e-12 * jnp.trace(inverse_mass) * jnp.eye(v0.size,
                                                                               dtype=v0.dtype)
     z = jax.random.normal(key, (chains, v0.size), v0.dtype)
