@@ -71,6 +71,7 @@ from ._solvers._accepted import Reporting, Writing
 from ._solvers._fixed import FixedStep, with_root_finder_tolerances
 from ._solvers._recorded import Table, empty_table
 from ._solvers._sampled import Samples
+from ._solvers._wrapped import TracedOnce
 from ._tolerance import ScaledPIDController
 
 # The loop of a run whose results nothing differentiates (a call with concrete values, an
@@ -78,6 +79,9 @@ from ._tolerance import ScaledPIDController
 # checkpointed loop takes the same steps but traces the step several times over (the falling
 # rod's program: 0.55 s of tracing against 0.40 s).
 FORWARD = dfx.ForwardMode()
+# The Runge-Kutta stage loop that `diffrax.diffeqsolve` picks for these adjoints where the
+# solver leaves it open (its forward-mode and `DirectAdjoint` special cases).
+_STAGE_LOOPS = {dfx.ForwardMode: "lax", dfx.DirectAdjoint: "bounded"}  # (by `isinstance`)
 
 # Stands in for the events of the other group in each condition's minimum.
 _BIG = 1e6
@@ -229,10 +233,12 @@ class _Run:
         self.sampled = solver_saves and ts is not None
         if self.sampled:
             self.ts_padded = Samples.pad(ts)
-        if isinstance(adjoint, dfx.ForwardMode) and getattr(solver, "scan_kind", "") is None:
-            # What diffrax does for forward mode, done before wrapping (it cannot see inside:
-            # `Reporting`, for the samples and the dense table).
-            solver = eqx.tree_at(lambda s: s.scan_kind, solver, "lax",
+        kind = next((k for a, k in _STAGE_LOOPS.items() if isinstance(adjoint, a)), None)
+        if kind is not None and getattr(solver, "scan_kind", "") is None \
+                and isinstance(solver, (dfx.AbstractRungeKutta, dfx.AbstractSRK)):
+            # What diffrax does for these adjoints, done before wrapping (it cannot see inside:
+            # `TracedOnce`, and `Reporting` for the samples and the dense table).
+            solver = eqx.tree_at(lambda s: s.scan_kind, solver, kind,
                                  is_leaf=lambda x: x is None)
         self.solver = solver
         # Segments on the unit interval (module docstring), where the solver sees time only
@@ -305,6 +311,9 @@ class _Run:
                 solver = with_root_finder_tolerances(solver, controller)  # diffeqsolve)
             controller = Writing(controller, writers, solver.interpolation_cls)
             solver = Reporting(solver)
+        if isinstance(solver, dfx.AbstractImplicitSolver):  # (the wrapper below hides it
+            solver = with_root_finder_tolerances(solver, controller)  # from diffeqsolve)
+        solver = TracedOnce(solver)
         event = None if self.watch is None else self.watch.event(t_s, y_s, unit)
         y_start, unravel = y_s, None
         if (not writers and not self.diffrax_dense and isinstance(controller, ScaledPIDController)
