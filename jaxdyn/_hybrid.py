@@ -236,8 +236,8 @@ class _Run:
         kind = next((k for a, k in _STAGE_LOOPS.items() if isinstance(adjoint, a)), None)
         if kind is not None and getattr(solver, "scan_kind", "") is None \
                 and isinstance(solver, (dfx.AbstractRungeKutta, dfx.AbstractSRK)):
-            # What diffrax does for these adjoints, done before wrapping (it cannot see inside:
-            # `TracedOnce`, and `Reporting` for the samples and the dense table).
+            # What diffrax does for these adjoints, done before wrapping (its check of the
+            # solver's kind sees through one wrapper, not `TracedOnce(Reporting(...))`).
             solver = eqx.tree_at(lambda s: s.scan_kind, solver, kind,
                                  is_leaf=lambda x: x is None)
         self.solver = solver
@@ -307,13 +307,10 @@ class _Run:
                                      is_leaf=lambda x: x is None)
             dt0 = None
         if writers:
-            if isinstance(solver, dfx.AbstractImplicitSolver):  # (the wrapper hides it from
+            if isinstance(solver, dfx.AbstractImplicitSolver):  # (two wrappers hide it from
                 solver = with_root_finder_tolerances(solver, controller)  # diffeqsolve)
             controller = Writing(controller, writers, solver.interpolation_cls)
             solver = Reporting(solver)
-        if isinstance(solver, dfx.AbstractImplicitSolver):  # (the wrapper below hides it
-            solver = with_root_finder_tolerances(solver, controller)  # from diffeqsolve)
-        solver = TracedOnce(solver)
         event = None if self.watch is None else self.watch.event(t_s, y_s, unit)
         y_start, unravel = y_s, None
         if (not writers and not self.diffrax_dense and isinstance(controller, ScaledPIDController)
@@ -330,6 +327,9 @@ class _Run:
             if event is not None:
                 event = eqx.tree_at(lambda e: e.cond_fn, event,
                                     _Raveled(event.cond_fn, unravel, output=False))
+        if isinstance(solver, dfx.AbstractImplicitSolver):  # (what diffeqsolve does, done
+            solver = with_root_finder_tolerances(solver, controller)  # before wrapping)
+        solver = TracedOnce(solver)  # (its step traced once, not four times)
         sol = dfx.diffeqsolve(
             term, solver, start, stop, dt0, y_start,
             args=self.scene,  # solvers that exploit the scene's structure (splittings) read it

@@ -10,7 +10,8 @@ holds no host callback (JAX's persistent compilation cache refuses programs that
 - `with_root_finder_tolerances`: an implicit solver's root finder given the step-size
   controller's tolerances where it leaves them to the controller (`use_stepsize_tol`, diffrax's
   default), as `diffeqsolve` does for an implicit solver; needed where the solver is wrapped
-  (`_accepted.Reporting`), which hides from `diffeqsolve` that it is implicit.
+  twice (`TracedOnce(Reporting(...))`): diffrax's check of a solver's kind sees through one
+  wrapper only.
 """
 
 import diffrax as dfx

@@ -1,6 +1,8 @@
 """Solvers that wrap another and delegate everything but `init` and `step` to it:
 `AbstractDelegatingSolver`, and `TracedOnce`, whose step is traced once per run."""
 
+from collections.abc import Callable
+
 import diffrax as dfx
 import equinox as eqx
 
@@ -44,7 +46,6 @@ class AbstractDelegatingSolver(dfx.AbstractWrappedSolver):
         return self.solver.func(terms, t0, y0, args)
 
 
-@eqx.filter_jit
 def _step(solver, terms, t0, t1, y0, args, solver_state, made_jump):
     return solver.step(terms, t0, t1, y0, args, solver_state, made_jump)
 
@@ -60,15 +61,26 @@ class TracedOnce(AbstractDelegatingSolver):
     0.21 s; `tests/test_rod.py`, `test_outcomes.py` and `test_hard_cases.py` traced in 20 s
     instead of 30 s.
 
-    Being a wrapper, it hides the solver's kind from `diffeqsolve`, so what `diffeqsolve`
-    does for a kind is done before wrapping (`_hybrid`): an implicit solver's root finder
-    gets its tolerances (`_fixed.with_root_finder_tolerances`), a Runge-Kutta solver its stage
-    loop for the adjoint (`scan_kind`)."""
+    Each wrapper holds a `jit` of its own (`step_once`), made with it: a run reuses its step's
+    trace, and no later run reuses it (a later trace of the same scene sees the values its
+    Python functions read then, as without the wrapper, and nothing outlives the run's
+    tracing in JAX's caches).
+
+    diffrax's `isinstance` checks of a solver's kind see through one wrapper, not two
+    (`TracedOnce(Reporting(...))`), so what `diffeqsolve` does for a kind is done before
+    wrapping (`_hybrid`): an implicit solver's root finder gets its tolerances
+    (`_fixed.with_root_finder_tolerances`), a Runge-Kutta solver its stage loop for the
+    adjoint (`scan_kind`)."""
 
     solver: dfx.AbstractSolver
+    step_once: Callable = eqx.field(static=True)
+
+    def __init__(self, solver):
+        self.solver = solver
+        self.step_once = eqx.filter_jit(_step)
 
     def init(self, terms, t0, t1, y0, args):
         return self.solver.init(terms, t0, t1, y0, args)
 
     def step(self, terms, t0, t1, y0, args, solver_state, made_jump):
-        return _step(self.solver, terms, t0, t1, y0, args, solver_state, made_jump)
+        return self.step_once(self.solver, terms, t0, t1, y0, args, solver_state, made_jump)
