@@ -306,9 +306,9 @@ class _Run:
             controller = eqx.tree_at(lambda c: c.first_step, controller, dt0,
                                      is_leaf=lambda x: x is None)
             dt0 = None
+        if isinstance(solver, dfx.AbstractImplicitSolver):  # (what diffeqsolve does, done
+            solver = with_root_finder_tolerances(solver, controller)  # before the wrappers)
         if writers:
-            if isinstance(solver, dfx.AbstractImplicitSolver):  # (two wrappers hide it from
-                solver = with_root_finder_tolerances(solver, controller)  # diffeqsolve)
             controller = Writing(controller, writers, solver.interpolation_cls)
             solver = Reporting(solver)
         event = None if self.watch is None else self.watch.event(t_s, y_s, unit)
@@ -327,8 +327,6 @@ class _Run:
             if event is not None:
                 event = eqx.tree_at(lambda e: e.cond_fn, event,
                                     _Raveled(event.cond_fn, unravel, output=False))
-        if isinstance(solver, dfx.AbstractImplicitSolver):  # (what diffeqsolve does, done
-            solver = with_root_finder_tolerances(solver, controller)  # before wrapping)
         solver = TracedOnce(solver)  # (its step traced once, not four times)
         sol = dfx.diffeqsolve(
             term, solver, start, stop, dt0, y_start,

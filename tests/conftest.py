@@ -44,14 +44,15 @@ from jaxdyn._cache import enable_compilation_cache  # noqa: E402
 
 enable_compilation_cache()
 
-# No full garbage collections in the workers, as in the command's process (`jaxdyn._cli.
-# _defer_full_collections`): each walks the whole heap, which JAX's caches of thousands of
-# programs make large. Three test modules (test_rod, test_outcomes, test_hard_cases) made 25
+# No full garbage collections in the workers, as in the command's process (the command's
+# own setting): each walks the whole heap, which JAX's caches of thousands of programs make
+# large. Three test modules (test_rod, test_outcomes, test_hard_cases) made 25
 # of 0.3 s each in 121 s (6 %), at the same peak memory without them (7 Dec 2026). The
 # younger generations are collected as usual, and `_bounded_memory_mappings` below collects
 # fully where the compiled programs' mappings grow.
-_young, _middle, _ = gc.get_threshold()
-gc.set_threshold(_young, _middle, 1 << 30)
+from jaxdyn._cli import _defer_full_collections  # noqa: E402
+
+_defer_full_collections()
 
 # The longest tests first, so that the workers finish together instead of one running a long
 # test alone at the end (with `--dist loadscope`, pyproject.toml, each module goes whole to
