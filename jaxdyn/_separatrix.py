@@ -295,7 +295,7 @@ def _classify(scene: Scene, omega):
     return eig, rel, u
 
 
-@stored_filter_jit
+@stored_filter_jit(light=True)  # one small problem per call (`_programs`)
 def _solve_all(scene: Scene, momentum, directions):
     centre, shape, rate_scale, scale = _sphere_frame(scene, momentum)
     dtype = momentum.dtype
@@ -585,7 +585,7 @@ def _lambda_squared(inertia, axis, rate, h):
     return 0.25 * jnp.trace(jac) ** 2 - c2
 
 
-@stored_filter_jit
+@stored_filter_jit(light=True)  # one small problem per call (`_programs`)
 def _critical_roots(inertia, axis, rate, guesses):
     size = jnp.sum(inertia) * jnp.abs(rate)  # momentum scale S |W|
 

@@ -256,14 +256,15 @@ def _concrete_arrays(*values) -> bool:
                for x in values)
 
 
-def _structure_program(name: str, treedef, options, build):
+def _structure_program(name: str, treedef, options, build, *, light: bool = False):
     """The `jax.jit` program `build(treedef)` for one scene structure (and static options),
-    built once: later calls pass only arrays, so dispatch costs what `jax.jit`'s costs."""
+    built once: later calls pass only arrays, so dispatch costs what `jax.jit`'s costs.
+    `light`: compiled with XLA's cheap settings (`_programs`)."""
     key = (name, treedef, options)
     program = _PROGRAMS.get(key)
     if program is None:  # (one for all threads: a prepared program's worker may make it)
         program = _PROGRAMS.setdefault(key, StoredProgram(name, treedef, options,
-                                                          build(treedef)))
+                                                          build(treedef), light=light))
     return program
 
 
@@ -278,7 +279,9 @@ def _trajectory_program(name: str, fn, filtered, traj: Trajectory, *static, dyna
 
 
 def _trajectory_stored(name: str, fn, treedef, static) -> StoredProgram:
-    """The program of `_trajectory_program` for one trajectory structure."""
+    """The program of `_trajectory_program` for one trajectory structure: light (`_programs`),
+    since each makes one pass over the trajectory (its summary, its interpolation at given
+    times), where compiling costs a hundred to a thousand times running."""
     def build(treedef):
         def program(leaves, *dynamic):
             return fn(jax.tree_util.tree_unflatten(treedef, leaves), *dynamic, *static)
@@ -286,7 +289,7 @@ def _trajectory_stored(name: str, fn, treedef, static) -> StoredProgram:
         program.__name__ = program.__qualname__ = name
         return program
 
-    return _structure_program(name, treedef, static, build)
+    return _structure_program(name, treedef, static, build, light=True)
 
 
 def prepare_report(traj: Trajectory, num: int | None = None) -> None:

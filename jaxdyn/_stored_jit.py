@@ -17,12 +17,13 @@ import jax
 from ._programs import StoredProgram
 
 
-def stored_filter_jit(fn=None, *, unless=None):
+def stored_filter_jit(fn=None, *, unless=None, light=False):
     """`eqx.filter_jit(fn)`, stored per static part (see the module's docstring). Outputs
     must be arrays (or modules of arrays). `unless(kwargs)`: calls that are traced as usual
-    (for example those holding a host callback, which cannot be stored)."""
+    (for example those holding a host callback, which cannot be stored). `light`: compiled
+    with XLA's cheap settings where called with concrete arrays (`_programs`)."""
     if fn is None:
-        return functools.partial(stored_filter_jit, unless=unless)
+        return functools.partial(stored_filter_jit, unless=unless, light=light)
     plain = eqx.filter_jit(fn)
     name = f"{fn.__module__}.{fn.__qualname__}"
     programs: dict = {}
@@ -45,7 +46,7 @@ def stored_filter_jit(fn=None, *, unless=None):
 
             flat.__name__ = flat.__qualname__ = fn.__name__  # JAX's logs name it after `fn`
             program = programs[key] = StoredProgram(
-                name, f"{treedef}|{static_def}|{static_leaves!r}", (), flat)
+                name, f"{treedef}|{static_def}|{static_leaves!r}", (), flat, light=light)
         return program, leaves
 
     @functools.wraps(fn)
