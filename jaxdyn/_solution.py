@@ -278,10 +278,17 @@ def _trajectory_program(name: str, fn, filtered, traj: Trajectory, *static, dyna
     return _trajectory_stored(name, fn, treedef, static)(leaves, *dynamic)
 
 
+# Light programs (`_programs`): the trajectory's summary and its resampling, each one pass over
+# the trajectory made once per run (a command's report), where compiling costs a hundred to a
+# thousand times running. Not `evaluate`, which a user calls again and again at the same
+# times (a plot, an animation's frames) and whose compilation is shared by every number of
+# times of a padded length: compiled so, a call at 200 times took 2.8-3.0x a hand-written
+# `jax.jit` of the same interpolation instead of 1.5-2.5x (`benchmarks/latency.py`, 7 Dec 2026).
+_LIGHT = ("summary", "resample")
+
+
 def _trajectory_stored(name: str, fn, treedef, static) -> StoredProgram:
-    """The program of `_trajectory_program` for one trajectory structure: light (`_programs`),
-    since each makes one pass over the trajectory (its summary, its interpolation at given
-    times), where compiling costs a hundred to a thousand times running."""
+    """The program of `_trajectory_program` for one trajectory structure."""
     def build(treedef):
         def program(leaves, *dynamic):
             return fn(jax.tree_util.tree_unflatten(treedef, leaves), *dynamic, *static)
@@ -289,7 +296,7 @@ def _trajectory_stored(name: str, fn, treedef, static) -> StoredProgram:
         program.__name__ = program.__qualname__ = name
         return program
 
-    return _structure_program(name, treedef, static, build, light=True)
+    return _structure_program(name, treedef, static, build, light=name in _LIGHT)
 
 
 def prepare_report(traj: Trajectory, num: int | None = None) -> None:

@@ -404,8 +404,8 @@ def compile_overrides(monkeypatch):
 @pytest.mark.parametrize("on_disk", [True, False], ids=["stored", "cache-off"])
 def test_a_light_program_is_compiled_cheaply_where_called_and_traced_as_usual(
         on_disk, stored, monkeypatch, compile_overrides):
-    """A light program (`_programs`: a trajectory's summary, resampling and evaluation, the
-    momentum sphere's equilibria) is compiled with XLA's cheap settings where it is called
+    """A light program (`_programs`: a trajectory's summary and resampling, the momentum
+    sphere's equilibria) is compiled with XLA's cheap settings where it is called
     with concrete inputs, stored or not, and under a key of its own; under the caller's
     `jit` or `grad` it is traced into the caller's program (where `jax.jit` refuses options
     of its own), and gives the same numbers throughout."""
@@ -433,10 +433,10 @@ def test_a_light_program_is_compiled_cheaply_where_called_and_traced_as_usual(
 @pytest.mark.optimized
 def test_light_trajectory_programs_give_the_numbers_of_the_usual_ones(stored, monkeypatch,
                                                                       compile_overrides):
-    """A trajectory's summary, resampling and evaluation are light programs (they make one
-    pass over the trajectory): compiled so, they give what the same functions compiled as a
-    user's programs are give, to round-off (the free body's closed-form reference
-    included)."""
+    """A trajectory's summary and resampling are light programs (one pass over the
+    trajectory, once per run); its evaluation, called again and again, is not. They give what
+    the same functions compiled as a user's programs are give, to round-off (the free body's
+    closed-form reference included)."""
     monkeypatch.setattr(_solution, "_PROGRAMS", {})  # (this process's programs: none)
     scene = jd.Scene(jd.RigidBody(np.array([1.0, 2.0, 2.5])), attitude=True)
     y0 = scene.state(omega=[0.3, 1.1, -0.2], quaternion=[1.0, 0.0, 0.0, 0.0])
@@ -446,7 +446,7 @@ def test_light_trajectory_programs_give_the_numbers_of_the_usual_ones(stored, mo
     report = samples.report()
     at = np.linspace(0.0, 30.0, 11)
     values = traj.evaluate(at)
-    assert compile_overrides.count(_programs._LIGHT) == 3, compile_overrides
+    assert compile_overrides.count(_programs._LIGHT) == 2, compile_overrides  # not evaluate's
     usual = jax.jit(_solution._summary_of)(samples)
 
     def compare(a, b):  # (the report's values are Python numbers and lists)
