@@ -45,11 +45,12 @@ cache and may be removed at any time.
 A program made `light` is compiled with XLA's cheap settings (those of JAX's
 `jax_disable_most_optimizations`: LLVM at -O0, without its expensive passes), where it is
 called with concrete inputs: for programs that make one pass over a trajectory or solve one
-small problem per call (a trajectory's summary and resampling, the equilibria of the
-momentum sphere), whose compilation costs a hundred to a thousand times their run. A cold
-`jaxdyn run torque-free` compiled its summary in 0.66 s against 0.35 s so; resampling 2e5
-points of a dense trajectory ran in 94 ms instead of 56 ms (7 Dec 2026). Under a trace of the
-caller's the function is traced into the caller's program, which is compiled as the caller's.
+small problem per call (a trajectory's summary and resampling, the equilibria and critical
+rotor momenta of the momentum sphere), whose compilation costs a hundred to a thousand times
+their run. A cold `jaxdyn run torque-free` compiled its summary in 0.35 s instead of 0.66 s;
+resampling 2e5 points of a dense trajectory ran in 94 ms instead of 56 ms (7 Dec 2026). Under
+a trace of the caller's the function is traced into the caller's program, which is compiled
+as the caller's.
 """
 
 import contextlib
@@ -144,7 +145,7 @@ class StoredProgram:
         self.fn = fn
         self.light = light  # compiled with XLA's cheap settings (see the module's docstring)
         self.jitted = _on_one_device(fn)  # (traced into a caller's program: no settings)
-        self.called = _on_one_device(fn, True) if light else self.jitted  # concrete inputs
+        self.called = _light_call(fn, self.jitted) if light else self.jitted  # concrete inputs
         self.text = f"{name}|{structure}|{options!r}" + ("|light" if light else "")
         self.trusted = _trusted(self.text)
         self.calls: dict = {}
@@ -695,6 +696,24 @@ def _on_one_device(fn, light: bool = False):
     moved to the default one: jaxdyn's programs run on one device.)"""
     return jax.jit(fn, in_shardings=jax.sharding.SingleDeviceSharding(_default_device()),
                    compiler_options=_LIGHT if light else None)
+
+
+def staged() -> bool:
+    """Whether this call is being staged into a program of the caller's (`jax.jit` of a
+    function that closes over concrete inputs): new values are then tracers."""
+    return isinstance(jax.numpy.zeros((), bool), jax.core.Tracer)
+
+
+def _light_call(fn, usual):
+    """`fn` under `jax.jit` on one device with XLA's cheap settings, or `usual` where the call
+    is staged into a program of the caller's (there `jax.jit`, even of concrete inputs, is a
+    nested program, which may not carry options of its own)."""
+    cheap = _on_one_device(fn, True)
+
+    def call(*args):
+        return usual(*args) if staged() else cheap(*args)
+
+    return call
 
 
 def _named(fn, like, tag=None):

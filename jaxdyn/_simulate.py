@@ -16,7 +16,7 @@ from ._body import AbstractBody
 from ._custom_types import State
 from ._hybrid import FORWARD, finite, integrate
 from ._outcome import Outcome
-from ._programs import _signature, forgotten_on_clear, thread_setting, when_lowered
+from ._programs import _signature, forgotten_on_clear, staged, thread_setting, when_lowered
 from ._scene import Scene
 from ._solution import (  # noqa: F401  (_PROGRAMS: read by benchmarks/latency.py)
     _PROGRAMS,
@@ -205,7 +205,7 @@ def simulate(
     # (so the program holds no host callback and JAX's persistent cache can keep it). Under a
     # trace of the caller's (jit, grad, vmap) the host cannot see the values: the checks ride
     # in the program (equinox's runtime errors).
-    traced = not is_concrete(scene, y0, t0, t1, ts, dt0, rtol, atol) or _staged()
+    traced = not is_concrete(scene, y0, t0, t1, ts, dt0, rtol, atol) or staged()
     if adjoint is None:
         # Concrete inputs give concrete outputs, which nothing can differentiate: the plain
         # loop (`FORWARD`). Under a trace of the caller's, reverse mode must work; so also
@@ -243,12 +243,6 @@ def _arrays_only(*trees) -> bool:
     return all(isinstance(x, jax.Array | np.ndarray | np.generic | int | float | bool | str)
                and not isinstance(x, jax.core.Tracer)
                for x in jax.tree_util.tree_leaves(trees))
-
-
-def _staged() -> bool:
-    """Whether this call is being staged into a program of the caller's (`jax.jit` of a
-    function that closes over concrete inputs): new values are then tracers."""
-    return isinstance(jnp.zeros((), bool), jax.core.Tracer)
 
 
 _FIELDS = ("ts", "ys", "t_final", "y_final", "event", "result", "outcome", "stats",

@@ -20,8 +20,9 @@ from ._programs import StoredProgram
 def stored_filter_jit(fn=None, *, unless=None, light=False):
     """`eqx.filter_jit(fn)`, stored per static part (see the module's docstring). Outputs
     must be arrays (or modules of arrays). `unless(kwargs)`: calls that are traced as usual
-    (for example those holding a host callback, which cannot be stored). `light`: compiled
-    with XLA's cheap settings where called with concrete arrays (`_programs`)."""
+    (for example those holding a host callback, which cannot be stored). `light`: its stored
+    programs compiled with XLA's cheap settings where called with concrete arrays
+    (`_programs`; not the calls that go to `filter_jit`)."""
     if fn is None:
         return functools.partial(stored_filter_jit, unless=unless, light=light)
     plain = eqx.filter_jit(fn)

@@ -392,6 +392,7 @@ def compile_overrides(monkeypatch):
 
     seen = []
     original = compiler.get_compile_options
+    _programs.staged()  # (its one eager operation compiled before recording)
 
     def recording(*args, **kwargs):
         seen.append(dict(kwargs.get("env_options_overrides") or {}) or None)
@@ -405,10 +406,11 @@ def compile_overrides(monkeypatch):
 def test_a_light_program_is_compiled_cheaply_where_called_and_traced_as_usual(
         on_disk, stored, monkeypatch, compile_overrides):
     """A light program (`_programs`: a trajectory's summary and resampling, the momentum
-    sphere's equilibria) is compiled with XLA's cheap settings where it is called
-    with concrete inputs, stored or not, and under a key of its own; under the caller's
-    `jit` or `grad` it is traced into the caller's program (where `jax.jit` refuses options
-    of its own), and gives the same numbers throughout."""
+    sphere's equilibria and critical rotor momenta) is compiled with XLA's cheap settings
+    where it is called with concrete inputs, stored or not, and under a key of its own; under
+    the caller's `jit` or `grad` it is traced into the caller's program (where `jax.jit`
+    refuses options of its own), also where its concrete inputs are captured by a function
+    being staged, and gives the same numbers throughout."""
     if not on_disk:
         monkeypatch.setattr(_programs, "_directory", lambda: None)
 
@@ -427,6 +429,10 @@ def test_a_light_program_is_compiled_cheaply_where_called_and_traced_as_usual(
     np.testing.assert_allclose(jax.jit(lambda x: light(x)["y"])(x), 2 * np.sin(x), rtol=1e-15)
     grad = jax.grad(lambda x: light(x)["y"].sum())(x)
     np.testing.assert_allclose(grad, 2 * np.cos(x), rtol=1e-15)
+    # Concrete inputs captured by a function of the caller's that is being staged (this
+    # signature's call already made: a compiled program where stored, else `jax.jit`).
+    np.testing.assert_allclose(jax.jit(lambda s: light(x)["y"] * s)(3.0), 6 * np.sin(x),
+                               rtol=1e-15)
     assert None in compile_overrides and _programs._LIGHT not in compile_overrides
 
 
@@ -435,8 +441,8 @@ def test_light_trajectory_programs_give_the_numbers_of_the_usual_ones(stored, mo
                                                                       compile_overrides):
     """A trajectory's summary and resampling are light programs (one pass over the
     trajectory, once per run); its evaluation, called again and again, is not. They give what
-    the same functions compiled as a user's programs are give, to round-off (the free body's
-    closed-form reference included)."""
+    the same functions compiled as usual give, to round-off (the free body's closed-form
+    reference included)."""
     monkeypatch.setattr(_solution, "_PROGRAMS", {})  # (this process's programs: none)
     scene = jd.Scene(jd.RigidBody(np.array([1.0, 2.0, 2.5])), attitude=True)
     y0 = scene.state(omega=[0.3, 1.1, -0.2], quaternion=[1.0, 0.0, 0.0, 0.0])
