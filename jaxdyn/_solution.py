@@ -284,7 +284,7 @@ def _trajectory_program(name: str, fn, filtered, traj: Trajectory, *static, dyna
 # times (a plot, an animation's frames) and whose compilation is shared by every number of
 # times of a padded length: compiled so, a call at 200 times took 2.8-3.0x a hand-written
 # `jax.jit` of the same interpolation instead of 1.5-2.5x (`benchmarks/latency.py`, 7 Dec 2026).
-_LIGHT = ("summary", "resample")
+_LIGHT_PROGRAMS = ("summary", "resample")  # (by name)
 
 
 def _trajectory_stored(name: str, fn, treedef, static) -> StoredProgram:
@@ -296,7 +296,7 @@ def _trajectory_stored(name: str, fn, treedef, static) -> StoredProgram:
         program.__name__ = program.__qualname__ = name
         return program
 
-    return _structure_program(name, treedef, static, build, light=name in _LIGHT)
+    return _structure_program(name, treedef, static, build, light=name in _LIGHT_PROGRAMS)
 
 
 def prepare_report(traj: Trajectory, num: int | None = None) -> None:
