@@ -700,8 +700,19 @@ def _on_one_device(fn, light: bool = False):
 
 def staged() -> bool:
     """Whether this call is being staged into a program of the caller's (`jax.jit` of a
-    function that closes over concrete inputs): new values are then tracers."""
+    function that closes over concrete inputs): new values are then tracers. Where no trace
+    is open at all (JAX's own check, 0.3 us) it is not, without making a value (65 us)."""
+    if _trace_state_clean():
+        return False
     return isinstance(jax.numpy.zeros((), bool), jax.core.Tracer)
+
+
+def _trace_state_clean() -> bool:
+    try:
+        from jax._src.core import trace_state_clean  # pyright: ignore
+    except ImportError:  # (another JAX: the value is made)
+        return False
+    return trace_state_clean()
 
 
 def _light_call(fn, usual):
