@@ -279,9 +279,8 @@ def _drawn(targets, key, index, dtype) -> dict[str, jax.Array]:
             for t in targets}
 
 
-def _draw(targets, key, index, y0, params, dtype):
-    """The varied values of trajectory `index` applied to its `y0` and parameters."""
-    drawn = _drawn(targets, key, index, dtype)
+def _apply(targets, drawn, y0, params, dtype):
+    """A trajectory's drawn values (by varied name) applied to its `y0` and parameters."""
     y0, params = dict(y0), dict(params)
     for t in targets:
         v = drawn[t.name]
@@ -289,6 +288,113 @@ def _draw(targets, key, index, y0, params, dtype):
         old = jnp.asarray(store[t.base], dtype)
         store[t.base] = v if t.index is None else old.at[t.index].set(v)
     return y0, params
+
+
+class _Draws:
+    """A run's draws: each trajectory's values of the varied names (`_drawn`: from
+    `fold_in(key, index)`), for a chunk's indices at a time, by a program of their own. The
+    chunk's program takes them as inputs, like the batched rows.
+
+    The program is lowered when the first chunk is launched, and XLA compiles it on a worker
+    thread while it compiles the chunk's program (`start`, called by `_compiled_chunk`; XLA
+    frees the GIL). Inside the chunk's program, the random bits (threefry's loops) cost 0.3 s
+    of its 1.0-1.15 s of XLA time in a cold `jaxdyn montecarlo` of one normal draw on 2
+    cores. The values each trajectory ran with (`Ensemble.varied()`, the chunk files'
+    `varied/`) come from the same program, so they are the values the chunks were given, by
+    construction."""
+
+    def __init__(self, inputs: "_Inputs", size: int):
+        self.inputs, self.size = inputs, size
+        self.compile_s = 0.0  # lowering it, and waiting for XLA where the chunk did not
+        self._program: _DrawProgram | None = None
+        self._ahead = None  # (first index, draws started) of the next chunk
+        # its array inputs, this run's: the distributions' arrays and the key
+        self._dyn, self._static = eqx.partition(
+            (tuple(t.dist for t in inputs.targets), inputs.key), eqx.is_array)
+
+    def _lowered(self) -> "_DrawProgram":
+        if self._program is None:
+            start = time.perf_counter()
+            self._program = _draw_program(self.inputs.targets, self._dyn, self._static,
+                                          self.size, self.inputs.dtype)
+            self.compile_s += time.perf_counter() - start
+        return self._program
+
+    def spec(self) -> dict[str, jax.ShapeDtypeStruct]:
+        """The shapes and types of a chunk's draws (lowering the program)."""
+        return self._lowered().spec if self.inputs.targets else {}
+
+    def start(self) -> None:
+        """Start compiling the program on a worker thread, where that has not started."""
+        if self.inputs.targets:
+            self._lowered().start()
+
+    def __call__(self, indices: np.ndarray) -> dict[str, np.ndarray]:
+        """The draws of trajectories `indices` (`size` of them), on the host."""
+        if not self.inputs.targets:
+            return {}
+        first = int(indices[0])
+        ahead, self._ahead = self._ahead, None
+        drawn = ahead[1] if ahead is not None and ahead[0] == first else self._start(indices)
+        return {k: np.asarray(v) for k, v in drawn.items()}
+
+    def ahead(self, indices: np.ndarray) -> None:
+        """Start drawing for trajectories `indices` (the next chunk's), so that their draws
+        are ready when it is launched (JAX runs the program while the host goes on)."""
+        if self.inputs.targets:
+            self._ahead = (int(indices[0]), self._start(indices))
+
+    def _start(self, indices):
+        wait = time.perf_counter()
+        fn = self._lowered().compiled()
+        self.compile_s += time.perf_counter() - wait
+        return fn(self._dyn, indices)
+
+
+class _DrawProgram:
+    """The lowered draw program of one structure of draws and size of chunk, and the future
+    of its compiled form."""
+
+    def __init__(self, lowered):
+        self.lowered = lowered
+        self.spec = jax.tree.map(lambda o: jax.ShapeDtypeStruct(o.shape, o.dtype),
+                                 lowered.out_info)
+        self._future: concurrent.futures.Future | None = None
+
+    def start(self) -> None:
+        if self._future is None:
+            pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="jaxdyn-draws")
+            self._future = pool.submit(self.lowered.compile)
+            pool.shutdown(wait=False)
+
+    def compiled(self):
+        self.start()
+        assert self._future is not None
+        return self._future.result()
+
+
+_DRAWS: dict = {}
+forgotten_on_clear(_DRAWS.clear)
+
+
+def _draw_program(targets, dyn, static, size: int, dtype) -> _DrawProgram:
+    """The draw program of chunks of `size` trajectories, cached by the structure of its
+    inputs (`dyn`: the distributions' arrays and the key, its arguments; `static`: the
+    rest)."""
+    bare = tuple(t._replace(dist=None) for t in targets)
+    leaves, treedef = jax.tree_util.tree_flatten(static)
+    cache_key = (bare, treedef, tuple(leaves), jax.tree.structure(dyn),
+                 tuple((x.shape, x.dtype) for x in jax.tree.leaves(dyn)), size,
+                 np.dtype(dtype))
+    if cache_key not in _DRAWS:
+        def draws(dyn, indices):
+            dists, key = eqx.combine(dyn, static)
+            full = tuple(t._replace(dist=d) for t, d in zip(bare, dists))
+            return jax.vmap(lambda i: _drawn(full, key, i, dtype))(indices)
+
+        _DRAWS[cache_key] = _DrawProgram(
+            jax.jit(draws).lower(dyn, jax.ShapeDtypeStruct((size,), np.uint32)))
+    return _DRAWS[cache_key]
 
 
 # -- one chunk ---------------------------------------------------------------------------------
@@ -300,14 +406,12 @@ class _Shared(NamedTuple):
     scene: Scene
     y0: dict[str, Any]  # the unbatched initial values
     params: dict[str, Any]  # the unbatched parameters (varied ones start from the scene's)
-    key: jax.Array
     t0: jax.Array
     t1: jax.Array
     ts: Any
     rtol: jax.Array
     atol: jax.Array
     dt0: Any
-    dists: tuple  # the distributions of the varied names, in the order of the targets
     n: jax.Array  # trajectories in the run (rows past it are a last chunk's padding)
 
 
@@ -315,7 +419,7 @@ class _Shared(NamedTuple):
 class _ChunkConfig:
     """The static settings of the compiled chunk (part of its cache key)."""
 
-    targets: tuple[_Target, ...]  # without their distributions, which are arguments
+    targets: tuple[_Target, ...]  # without their distributions (`_Draws` draws)
     solver: Any
     mode: str
     max_steps: int
@@ -358,15 +462,14 @@ def _chunk_core(dyn, rows, *, static, config: _ChunkConfig, axis_name):
 
 def _chunk_inputs(shared: _Shared, config: _ChunkConfig, rows):
     """Each trajectory's initial state and parameters: the shared values, its rows of the
-    batched inputs, then its draws."""
-    indices, batch_y0, batch_params = rows
-    targets = tuple(t._replace(dist=d) for t, d in zip(config.targets, shared.dists))
+    batched inputs, then its draws (drawn by the chunk's draw program, `_Draws`)."""
+    indices, batch_y0, batch_params, drawn = rows
 
-    def one(index, by0, bp):
-        return _draw(targets, shared.key, index, {**shared.y0, **by0},
-                     {**shared.params, **bp}, shared.t0.dtype)
+    def one(_, by0, bp, values):  # (the indices give the batch its size)
+        return _apply(config.targets, values, {**shared.y0, **by0}, {**shared.params, **bp},
+                      shared.t0.dtype)
 
-    return jax.vmap(one)(indices, batch_y0, batch_params)
+    return jax.vmap(one)(indices, batch_y0, batch_params, drawn)
 
 
 def _run_vmap(shared: _Shared, config: _ChunkConfig, params, y0, flags):
@@ -486,10 +589,12 @@ default; the chunk is long runs of arithmetic on contiguous rows, which 512-bit 
 the CPU has them, AVX-512) do about 1.4 times faster. Elsewhere the option changes nothing."""
 
 
-def _compiled_chunk(dyn, static, sharded, config: _ChunkConfig, devices, chunks: int):
+def _compiled_chunk(dyn, static, sharded, config: _ChunkConfig, devices, chunks: int,
+                    beside: Callable[[], None] = lambda: None):
     """The compiled chunk function for these shapes and this configuration (cached), and how
     its inputs are placed: `"per_device"` (a list of single-device programs), a sharding, or
-    `None` (one device); also the seconds spent compiling it now.
+    `None` (one device); also the seconds spent compiling it now. `beside()` is called where
+    XLA is about to compile it (the draws' program starts compiling beside it).
 
     An adaptive run of several chunks on several devices gets one program per device (see
     `_compile_per_device`); a run of one chunk gets one program over all of them: there is no
@@ -508,14 +613,15 @@ def _compiled_chunk(dyn, static, sharded, config: _ChunkConfig, devices, chunks:
     options = CPU_COMPILER_OPTIONS if devices[0].platform == "cpu" else None
     start = time.perf_counter()
     if per_device:
-        _COMPILED[key] = (_compile_per_device(dyn, static, sharded, config, devices, options),
-                          "per_device")
+        _COMPILED[key] = (_compile_per_device(dyn, static, sharded, config, devices, options,
+                                              beside), "per_device")
     else:
-        _COMPILED[key] = _compile_sharded(dyn, static, sharded, config, devices, options)
+        _COMPILED[key] = _compile_sharded(dyn, static, sharded, config, devices, options,
+                                          beside)
     return _COMPILED[key], time.perf_counter() - start
 
 
-def _compile_per_device(dyn, static, sharded, config, devices, options):
+def _compile_per_device(dyn, static, sharded, config, devices, options, beside):
     """One single-device program per device, each given its rows of the chunk.
 
     Per-trajectory stepping needs nothing across devices. (A program spanning several CPU
@@ -534,11 +640,12 @@ def _compile_per_device(dyn, static, sharded, config, devices, options):
         return jax.jit(body).lower(*spec)
 
     lowered = [lower(device) for device in devices]
+    beside()
     with concurrent.futures.ThreadPoolExecutor(len(devices)) as pool:  # XLA frees the GIL
         return list(pool.map(lambda lw: lw.compile(options), lowered))
 
 
-def _compile_sharded(dyn, static, sharded, config, devices, options):
+def _compile_sharded(dyn, static, sharded, config, devices, options, beside):
     """One program over every device (the chunk's rows split across a mesh), or over the one
     device: the compiled program and the sharding of its batched inputs."""
     body = partial(_chunk_core, static=static, config=config, axis_name=None)
@@ -559,7 +666,9 @@ def _compile_sharded(dyn, static, sharded, config, devices, options):
             body = jax.shard_map(
                 partial(_chunk_core, static=static, config=config, axis_name="batch"),
                 mesh=mesh, in_specs=(whole, spec), out_specs=spec, check_vma=False)
-    return jax.jit(body, **shardings).lower(dyn, sharded).compile(options), sharding
+    lowered = jax.jit(body, **shardings).lower(dyn, sharded)
+    beside()
+    return lowered.compile(options), sharding
 
 
 # -- the ensemble ------------------------------------------------------------------------------
@@ -780,18 +889,24 @@ class _Chunks:
             scene=inputs.scene,
             y0={k: device_array(v, dtype) for k, v in inputs.y_single.items()},
             params={k: jnp.asarray(v) for k, v in inputs.p_single.items()},
-            key=inputs.key, t0=inputs.t0, t1=inputs.t1, ts=inputs.ts,
+            t0=inputs.t0, t1=inputs.t1, ts=inputs.ts,
             rtol=device_array(inputs.rtol, dtype), atol=device_array(inputs.atol, dtype),
-            dt0=inputs.dt0, dists=tuple(t.dist for t in inputs.targets),  # arguments too
+            dt0=inputs.dt0,
             n=device_array(inputs.n, np.uint32))
         self.dyn, self.static = eqx.partition(shared, eqx.is_array)
         self.config = _ChunkConfig(
             targets=tuple(t._replace(dist=None) for t in inputs.targets), solver=inputs.solver,
             mode=inputs.mode, max_steps=inputs.max_steps, observe=inputs.observe,
             events=inputs.events, compact_rows=_batch_solve.COMPACT_ROWS)
-        self.compile_s = 0.0
+        self._compile_s = 0.0
+        self.draws = _Draws(inputs, plan.chunk_size)
         self._dyn_on: list = []  # the shared inputs, on each device
         self._varied: dict[str, np.ndarray] | None = None  # for the chunk files
+
+    @property
+    def compile_s(self) -> float:
+        """Seconds spent compiling the chunk's program and the draws' (where waited for)."""
+        return self._compile_s + self.draws.compile_s
 
     def bounds(self, c: int) -> tuple[int, int]:
         size = self.plan.chunk_size
@@ -805,22 +920,29 @@ class _Chunks:
         rows = np.minimum(idx, hi - 1)  # the last chunk is padded with copies of its last row
         # NumPy rows, moved to the devices in one transfer (not a JAX array on the first device
         # first, then resharded).
-        sharded = (idx.astype(np.uint32),
-                   {k: np.asarray(np.asarray(v)[rows], inputs.dtype)
-                    for k, v in inputs.y_batch.items()},
-                   {k: np.asarray(np.asarray(v)[rows]) for k, v in inputs.p_batch.items()})
-        (fn, sharding), seconds = _compiled_chunk(self.dyn, self.static, sharded, self.config,
-                                                  list(devices), self.plan.chunks)
-        self.compile_s += seconds
+        batch = (idx.astype(np.uint32),
+                 {k: np.asarray(np.asarray(v)[rows], inputs.dtype)
+                  for k, v in inputs.y_batch.items()},
+                 {k: np.asarray(np.asarray(v)[rows]) for k, v in inputs.p_batch.items()})
+        (fn, sharding), seconds = _compiled_chunk(self.dyn, self.static,
+                                                  (*batch, self.draws.spec()), self.config,
+                                                  list(devices), self.plan.chunks,
+                                                  self.draws.start)
+        self._compile_s += seconds
+        sharded = (*batch, self.draws(batch[0]))
         if sharding == "per_device":
             k = size // len(devices)
             if not self._dyn_on:
                 self._dyn_on.extend(jax.device_put(self.dyn, device) for device in devices)
             parts = [jax.device_put(jax.tree.map(lambda x: x[i * k:(i + 1) * k], sharded),
                                     device) for i, device in enumerate(devices)]
-            return c, hi - lo, [f(dy, part) for f, dy, part in zip(fn, self._dyn_on, parts)]
-        sharded = jax.device_put(sharded, sharding if sharding is not None else devices[0])
-        return c, hi - lo, fn(self.dyn, sharded)
+            result = [f(dy, part) for f, dy, part in zip(fn, self._dyn_on, parts)]
+        else:
+            sharded = jax.device_put(sharded, sharding if sharding is not None else devices[0])
+            result = fn(self.dyn, sharded)
+        if c + 1 < self.plan.chunks:
+            self.draws.ahead(np.arange(hi, hi + size, dtype=np.uint32))
+        return c, hi - lo, result
 
     def finish(self, started) -> dict[str, np.ndarray]:
         """Bring a started chunk's results to the host: what is kept (all values when the
@@ -841,7 +963,7 @@ class _Chunks:
             # ran with, and the texts of the invalid-input reasons.
             lo, hi = self.bounds(c)
             if self._varied is None:
-                self._varied = _varied(self.inputs)()
+                self._varied = _varied(self.inputs, self.draws)()
             arrays.update({f"varied/{k}": v[lo:hi] for k, v in self._varied.items()})
             arrays["messages"] = np.array(list(self.inputs.messages), dtype=np.str_)
             self.store.write(c, arrays)
@@ -927,16 +1049,18 @@ def _reasons(results, chunk_size: int, messages) -> dict[int, str]:
     return reasons
 
 
-def _varied(inputs: _Inputs) -> Callable[[], dict[str, np.ndarray]]:
-    """The values each trajectory ran with, recomputed on demand as the chunks drew them."""
+def _varied(inputs: _Inputs, draws: _Draws) -> Callable[[], dict[str, np.ndarray]]:
+    """The values each trajectory ran with, recomputed on demand by the chunks' draw
+    program."""
     given = {k: np.asarray(v) for k, v in {**inputs.y_batch, **inputs.p_batch}.items()}
 
     def varied():
         out = dict(given)
         if inputs.targets:
-            draws = jax.jit(jax.vmap(lambda i: _drawn(inputs.targets, inputs.key, i,
-                                                      inputs.dtype)))(jnp.arange(inputs.n))
-            out.update({k: np.asarray(v) for k, v in draws.items()})
+            chunks = [draws(np.arange(lo, lo + draws.size, dtype=np.uint32))
+                      for lo in range(0, inputs.n, draws.size)]
+            out.update({k: np.concatenate([c[k] for c in chunks])[:inputs.n]
+                        for k in chunks[0]})
         return out
 
     return varied
@@ -1025,7 +1149,7 @@ def ensemble(
     timing = {"compile_s": round(chunks.compile_s, 4), "run_s": round(run_s, 4),
               "trajectories_per_s": (computed / run_s) if run_s > 0 else None}
     return Ensemble(
-        drawn=_varied(inputs), n=inputs.n,
+        drawn=_varied(inputs, chunks.draws), n=inputs.n,
         status=np.concatenate([r["status"] for r in in_order]).astype(np.int8),
         values=_kept_values(in_order, inputs.keep), moments=_moments_by_name(in_order),
         steps=np.concatenate([r["steps"] for r in in_order]),

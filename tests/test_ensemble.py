@@ -79,6 +79,44 @@ def test_samples_do_not_depend_on_the_chunk_size():
     assert np.array_equal(other.values["omega"], _free().values["omega"])
 
 
+def _started_from(traj):
+    return {"omega0": traj.ys["omega"][0], "inertia": traj.scene.parameters()["inertia"]}
+
+
+@pytest.mark.parametrize("mode", ["vmap", "adaptive"])
+@pytest.mark.optimized  # (bit for bit: the programs a user runs)
+def test_the_varied_values_are_the_ones_each_trajectory_started_from(mode):
+    """`varied()` lists, to the last bit, the values each trajectory started from (its state
+    saved at t0, its scene's parameters), over chunks with a padded last one: the chunks'
+    draws come from a program of their own, which `varied()` runs again."""
+    res = jd.ensemble(FREE, FREE.state(omega=[1e-3, 1.0, 1e-3]), 1.0, n=21, key=11,
+                      chunk_size=8, mode=mode, ts=np.array([0.0, 1.0]),
+                      observe=_started_from,
+                      vary={"inertia": jd.LogNormal([1.0, 2.0, 2.5], 0.01),
+                            "omega[0]": jd.Normal(0.0, 1e-3),
+                            "omega[2]": jd.Uniform(-1e-3, 1e-3)})
+    varied = res.varied()
+    assert res.completed == 21 and set(varied) == {"inertia", "omega[0]", "omega[2]"}
+    assert np.array_equal(res.values["inertia"], varied["inertia"])
+    assert np.array_equal(res.values["omega0"][:, 0], varied["omega[0]"])
+    assert np.array_equal(res.values["omega0"][:, 2], varied["omega[2]"])
+    assert np.all(res.values["omega0"][:, 1] == 1.0)
+    assert len(np.unique(varied["omega[0]"])) == 21  # (one draw per trajectory)
+    # Another key and spread: new draws from the same programs (their arrays are arguments).
+    from jaxdyn import _ensemble
+
+    programs = (len(_ensemble._DRAWS), len(_ensemble._COMPILED))
+    again = jd.ensemble(FREE, FREE.state(omega=[1e-3, 1.0, 1e-3]), 1.0, n=21, key=12,
+                        chunk_size=8, mode=mode, ts=np.array([0.0, 1.0]),
+                        observe=_started_from,
+                        vary={"inertia": jd.LogNormal([1.0, 2.0, 2.5], 0.02),
+                              "omega[0]": jd.Normal(0.0, 2e-3),
+                              "omega[2]": jd.Uniform(-1e-3, 1e-3)})
+    assert (len(_ensemble._DRAWS), len(_ensemble._COMPILED)) == programs
+    assert np.array_equal(again.values["omega0"][:, 0], again.varied()["omega[0]"])
+    assert not np.any(np.isin(again.varied()["omega[0]"], varied["omega[0]"]))
+
+
 def test_statistics_are_those_of_the_kept_values(free_adaptive):
     res = free_adaptive
     v = res.values["energy"]
