@@ -83,18 +83,22 @@ def _started_from(traj):
     return {"omega0": traj.ys["omega"][0], "inertia": traj.scene.parameters()["inertia"]}
 
 
+def _started(mode, key, spread):
+    """21 free bodies in chunks of 8 observed at t0, three names varied."""
+    return jd.ensemble(FREE, FREE.state(omega=[1e-3, 1.0, 1e-3]), 1.0, n=21, key=key,
+                       chunk_size=8, mode=mode, ts=np.array([0.0, 1.0]), observe=_started_from,
+                       vary={"inertia": jd.LogNormal([1.0, 2.0, 2.5], 0.01 * spread),
+                             "omega[0]": jd.Normal(0.0, 1e-3 * spread),
+                             "omega[2]": jd.Uniform(-1e-3, 1e-3)})
+
+
 @pytest.mark.parametrize("mode", ["vmap", "adaptive"])
 @pytest.mark.optimized  # (bit for bit: the programs a user runs)
 def test_the_varied_values_are_the_ones_each_trajectory_started_from(mode):
     """`varied()` lists, to the last bit, the values each trajectory started from (its state
     saved at t0, its scene's parameters), over chunks with a padded last one: the chunks'
     draws come from a program of their own, which `varied()` runs again."""
-    res = jd.ensemble(FREE, FREE.state(omega=[1e-3, 1.0, 1e-3]), 1.0, n=21, key=11,
-                      chunk_size=8, mode=mode, ts=np.array([0.0, 1.0]),
-                      observe=_started_from,
-                      vary={"inertia": jd.LogNormal([1.0, 2.0, 2.5], 0.01),
-                            "omega[0]": jd.Normal(0.0, 1e-3),
-                            "omega[2]": jd.Uniform(-1e-3, 1e-3)})
+    res = _started(mode, key=11, spread=1.0)
     varied = res.varied()
     assert res.completed == 21 and set(varied) == {"inertia", "omega[0]", "omega[2]"}
     assert np.array_equal(res.values["inertia"], varied["inertia"])
@@ -106,12 +110,7 @@ def test_the_varied_values_are_the_ones_each_trajectory_started_from(mode):
     from jaxdyn import _ensemble
 
     programs = (len(_ensemble._DRAWS), len(_ensemble._COMPILED))
-    again = jd.ensemble(FREE, FREE.state(omega=[1e-3, 1.0, 1e-3]), 1.0, n=21, key=12,
-                        chunk_size=8, mode=mode, ts=np.array([0.0, 1.0]),
-                        observe=_started_from,
-                        vary={"inertia": jd.LogNormal([1.0, 2.0, 2.5], 0.02),
-                              "omega[0]": jd.Normal(0.0, 2e-3),
-                              "omega[2]": jd.Uniform(-1e-3, 1e-3)})
+    again = _started(mode, key=12, spread=2.0)
     assert (len(_ensemble._DRAWS), len(_ensemble._COMPILED)) == programs
     assert np.array_equal(again.values["omega0"][:, 0], again.varied()["omega[0]"])
     assert not np.any(np.isin(again.varied()["omega[0]"], varied["omega[0]"]))
