@@ -303,20 +303,22 @@ class _Draws:
     `varied/`) come from the same program, so they are the values the chunks were given, by
     construction."""
 
-    def __init__(self, inputs: "_Inputs", size: int):
-        self.inputs, self.size = inputs, size
+    def __init__(self, inputs: "_Inputs", size: int, device: jax.Device):
+        self.inputs, self.size, self.device = inputs, size, device
         self.compile_s = 0.0  # lowering it, and waiting for XLA where the chunk did not
         self._program: _DrawProgram | None = None
         self._ahead = None  # (first index, draws started) of the next chunk
-        # its array inputs, this run's: the distributions' arrays and the key
-        self._dyn, self._static = eqx.partition(
+        # its array inputs, this run's: the distributions' arrays and the key (on the run's
+        # first device, where the program runs: the draws' last bits depend on the platform)
+        dyn, self._static = eqx.partition(
             (tuple(t.dist for t in inputs.targets), inputs.key), eqx.is_array)
+        self._dyn = jax.device_put(dyn, device) if inputs.targets else dyn
 
     def _lowered(self) -> "_DrawProgram":
         if self._program is None:
             start = time.perf_counter()
             self._program = _draw_program(self.inputs.targets, self._dyn, self._static,
-                                          self.size, self.inputs.dtype)
+                                          self.size, self.inputs.dtype, self.device)
             self.compile_s += time.perf_counter() - start
         return self._program
 
@@ -333,14 +335,17 @@ class _Draws:
         """The draws of trajectories `indices` (`size` of them), on the host."""
         if not self.inputs.targets:
             return {}
-        first = int(indices[0])
-        ahead, self._ahead = self._ahead, None
-        drawn = ahead[1] if ahead is not None and ahead[0] == first else self._start(indices)
+        if self._ahead is not None and self._ahead[0] == int(indices[0]):
+            drawn, self._ahead = self._ahead[1], None
+        else:
+            drawn = self._start(indices)
         return {k: np.asarray(v) for k, v in drawn.items()}
 
     def ahead(self, indices: np.ndarray) -> None:
-        """Start drawing for trajectories `indices` (the next chunk's), so that their draws
-        are ready when it is launched (JAX runs the program while the host goes on)."""
+        """Start drawing for trajectories `indices` (the next chunk's to be launched here),
+        so that their draws are ready when it is launched. Called before the chunk before it
+        is started: a device runs its programs in order, and drawn after it they would wait
+        for it."""
         if self.inputs.targets:
             self._ahead = (int(indices[0]), self._start(indices))
 
@@ -370,30 +375,35 @@ class _DrawProgram:
     def compiled(self):
         self.start()
         assert self._future is not None
-        return self._future.result()
+        try:
+            return self._future.result()
+        except BaseException:
+            self._future = None  # (a later call compiles it again)
+            raise
 
 
 _DRAWS: dict = {}
 forgotten_on_clear(_DRAWS.clear)
 
 
-def _draw_program(targets, dyn, static, size: int, dtype) -> _DrawProgram:
-    """The draw program of chunks of `size` trajectories, cached by the structure of its
-    inputs (`dyn`: the distributions' arrays and the key, its arguments; `static`: the
+def _draw_program(targets, dyn, static, size: int, dtype, device) -> _DrawProgram:
+    """The draw program of chunks of `size` trajectories on `device`, cached by the structure
+    of its inputs (`dyn`: the distributions' arrays and the key, its arguments; `static`: the
     rest)."""
     bare = tuple(t._replace(dist=None) for t in targets)
     leaves, treedef = jax.tree_util.tree_flatten(static)
     cache_key = (bare, treedef, tuple(leaves), jax.tree.structure(dyn),
                  tuple((x.shape, x.dtype) for x in jax.tree.leaves(dyn)), size,
-                 np.dtype(dtype))
+                 np.dtype(dtype), device)
     if cache_key not in _DRAWS:
         def draws(dyn, indices):
             dists, key = eqx.combine(dyn, static)
             full = tuple(t._replace(dist=d) for t, d in zip(bare, dists))
             return jax.vmap(lambda i: _drawn(full, key, i, dtype))(indices)
 
-        _DRAWS[cache_key] = _DrawProgram(
-            jax.jit(draws).lower(dyn, jax.ShapeDtypeStruct((size,), np.uint32)))
+        where = jax.sharding.SingleDeviceSharding(device)
+        _DRAWS[cache_key] = _DrawProgram(jax.jit(draws, in_shardings=where).lower(
+            dyn, jax.ShapeDtypeStruct((size,), np.uint32, sharding=where)))
     return _DRAWS[cache_key]
 
 
@@ -435,7 +445,8 @@ def _scene_of(scene, p):
 def _chunk_core(dyn, rows, *, static, config: _ChunkConfig, axis_name):
     """Simulate and observe one chunk (or one device's shard of it): its observed values,
     their moments over the successful trajectories, and each trajectory's status, reason
-    and steps. `rows`: the trajectories' indices and their rows of the batched inputs."""
+    and steps. `rows`: the trajectories' indices, their rows of the batched inputs and their
+    draws (`_Draws`)."""
     shared = eqx.combine(dyn, static)
     indices = rows[0]
     y0, params = _chunk_inputs(shared, config, rows)
@@ -899,7 +910,7 @@ class _Chunks:
             mode=inputs.mode, max_steps=inputs.max_steps, observe=inputs.observe,
             events=inputs.events, compact_rows=_batch_solve.COMPACT_ROWS)
         self._compile_s = 0.0
-        self.draws = _Draws(inputs, plan.chunk_size)
+        self.draws = _Draws(inputs, plan.chunk_size, plan.devices[0])
         self._dyn_on: list = []  # the shared inputs, on each device
         self._varied: dict[str, np.ndarray] | None = None  # for the chunk files
 
@@ -912,8 +923,9 @@ class _Chunks:
         size = self.plan.chunk_size
         return c * size, min((c + 1) * size, self.inputs.n)
 
-    def launch(self, c: int):
-        """Start chunk `c` (JAX dispatches asynchronously); returns its unfinished results."""
+    def launch(self, c: int, following: int | None = None):
+        """Start chunk `c` (JAX dispatches asynchronously), and the draws of chunk `following`
+        (the next to be launched here) before it; returns its unfinished results."""
         inputs, devices, size = self.inputs, self.plan.devices, self.plan.chunk_size
         lo, hi = self.bounds(c)
         idx = np.arange(lo, lo + size)
@@ -930,6 +942,9 @@ class _Chunks:
                                                   self.draws.start)
         self._compile_s += seconds
         sharded = (*batch, self.draws(batch[0]))
+        if following is not None:
+            self.draws.ahead(np.arange(following * size, (following + 1) * size,
+                                       dtype=np.uint32))
         if sharding == "per_device":
             k = size // len(devices)
             if not self._dyn_on:
@@ -940,8 +955,6 @@ class _Chunks:
         else:
             sharded = jax.device_put(sharded, sharding if sharding is not None else devices[0])
             result = fn(self.dyn, sharded)
-        if c + 1 < self.plan.chunks:
-            self.draws.ahead(np.arange(hi, hi + size, dtype=np.uint32))
         return c, hi - lo, result
 
     def finish(self, started) -> dict[str, np.ndarray]:
@@ -993,8 +1006,8 @@ def _run_chunks(chunks: _Chunks, plan: Plan, store, progress: bool):
     # One chunk runs while the host finishes the one before it. The run time excludes the
     # compilation, which happens (once) inside the first launch.
     started, computed, clock = None, 0, time.perf_counter()
-    for c in todo + [None]:
-        nxt = chunks.launch(c) if c is not None else None
+    for c, following in zip(todo + [None], todo[1:] + [None, None]):
+        nxt = chunks.launch(c, following) if c is not None else None
         if started is not None:
             results[started[0]] = chunks.finish(started)
             computed += started[1]

@@ -116,6 +116,27 @@ def test_the_varied_values_are_the_ones_each_trajectory_started_from(mode):
     assert not np.any(np.isin(again.varied()["omega[0]"], varied["omega[0]"]))
 
 
+def test_a_draws_program_that_failed_to_compile_is_compiled_again():
+    """A compilation of the draws' program that raised (out of memory, say) is not kept: the
+    next run with the same structure compiles it again."""
+    from jaxdyn import _ensemble
+
+    class Lowered:
+        out_info: dict = {}
+        calls = 0
+
+        def compile(self):
+            Lowered.calls += 1
+            if Lowered.calls == 1:
+                raise MemoryError("no memory for XLA")
+            return "compiled"
+
+    program = _ensemble._DrawProgram(Lowered())
+    with pytest.raises(MemoryError, match="no memory"):
+        program.compiled()
+    assert program.compiled() == "compiled" and Lowered.calls == 2
+
+
 def test_statistics_are_those_of_the_kept_values(free_adaptive):
     res = free_adaptive
     v = res.values["energy"]
