@@ -22,10 +22,11 @@ from ._chunkstore import ChunkStore, digest
 from ._distributions import AbstractDistribution, name_seed, split_name
 from ._hybrid import FORWARD, Watch
 from ._outcome import Outcome, to_diffrax
-from ._programs import forgotten_on_clear
+from ._programs import forgotten_on_clear, start_prepared
 from ._scene import Scene
 from ._simulate import _prepare_run, _simulate, check_tolerances
 from ._solution import Trajectory
+from ._stored_jit import stored_filter_jit
 from ._tolerance import FLOOR, ScaledPIDController
 from ._validation import ParameterError, device_array, key_from_seed
 
@@ -290,46 +291,39 @@ def _apply(targets, drawn, y0, params, dtype):
     return y0, params
 
 
+@stored_filter_jit
+def _draws_of(targets, key, indices, dtype):
+    """The values of the varied names (`_drawn`) of trajectories `indices`, by name."""
+    return jax.vmap(lambda i: _drawn(targets, key, i, dtype))(indices)
+
+
 class _Draws:
     """A run's draws: each trajectory's values of the varied names (`_drawn`: from
     `fold_in(key, index)`), for a chunk's indices at a time, by a program of their own. The
     chunk's program takes them as inputs, like the batched rows.
 
-    The program is lowered when the first chunk is launched, and XLA compiles it on a worker
-    thread while it compiles the chunk's program (`start`, called by `_compiled_chunk`; XLA
-    frees the GIL). Inside the chunk's program, the random bits (threefry's loops) cost 0.3 s
-    of its 1.0-1.15 s of XLA time in a cold `jaxdyn montecarlo` of one normal draw on 2
-    cores. The values each trajectory ran with (`Ensemble.varied()`, the chunk files'
-    `varied/`) come from the same program, so they are the values the chunks were given, by
-    construction."""
+    The program is `prepare`d when the first chunk is launched: it is made ready on the other
+    core while XLA compiles the chunk's program (`_programs.start_prepared`, called by
+    `_compile_sharded` and `_compile_per_device`). Inside the chunk's program, the random
+    bits (threefry's loops) cost 0.3 s of its 1.0-1.15 s of XLA time in a cold `jaxdyn
+    montecarlo` of one normal draw on 2 cores. The values each trajectory ran with
+    (`Ensemble.varied()`, the chunk files' `varied/`) come from the same program, so they are
+    the values the chunks were given, by construction."""
 
-    def __init__(self, inputs: "_Inputs", size: int, device: jax.Device):
-        self.inputs, self.size, self.device = inputs, size, device
-        self.compile_s = 0.0  # lowering it, and waiting for XLA where the chunk did not
-        self._program: _DrawProgram | None = None
+    def __init__(self, inputs: "_Inputs", size: int):
+        self.inputs, self.size = inputs, size
+        self.compile_s = 0.0  # waiting for the program, or making it, on its first call
+        self._made = False
         self._ahead = None  # (first index, draws started) of the next chunk
-        # its array inputs, this run's: the distributions' arrays and the key (on the run's
-        # first device, where the program runs: the draws' last bits depend on the platform)
-        dyn, self._static = eqx.partition(
-            (tuple(t.dist for t in inputs.targets), inputs.key), eqx.is_array)
-        self._dyn = jax.device_put(dyn, device) if inputs.targets else dyn
+        # a chunk's draws (a distribution draws in the run's dtype, in its target's shape)
+        dtype = np.dtype(inputs.dtype)
+        self.spec = {t.name: jax.ShapeDtypeStruct((size, *t.shape), dtype)
+                     for t in inputs.targets}
 
-    def _lowered(self) -> "_DrawProgram":
-        if self._program is None:
-            start = time.perf_counter()
-            self._program = _draw_program(self.inputs.targets, self._dyn, self._static,
-                                          self.size, self.inputs.dtype, self.device)
-            self.compile_s += time.perf_counter() - start
-        return self._program
-
-    def spec(self) -> dict[str, jax.ShapeDtypeStruct]:
-        """The shapes and types of a chunk's draws (lowering the program)."""
-        return self._lowered().spec if self.inputs.targets else {}
-
-    def start(self) -> None:
-        """Start compiling the program on a worker thread, where that has not started."""
+    def prepare(self, indices: np.ndarray) -> None:
+        """Have the program made ready on another core while the chunk's compiles."""
         if self.inputs.targets:
-            self._lowered().start()
+            _draws_of.prepare(self.inputs.targets, self.inputs.key, indices, self.inputs.dtype)
 
     def __call__(self, indices: np.ndarray) -> dict[str, np.ndarray]:
         """The draws of trajectories `indices` (`size` of them), on the host."""
@@ -339,7 +333,7 @@ class _Draws:
             drawn, self._ahead = self._ahead[1], None
         else:
             drawn = self._start(indices)
-        return {k: np.asarray(v) for k, v in drawn.items()}
+        return {k: np.asarray(drawn[k], s.dtype).reshape(s.shape) for k, s in self.spec.items()}
 
     def ahead(self, indices: np.ndarray) -> None:
         """Start drawing for trajectories `indices` (the next chunk's to be launched here),
@@ -350,61 +344,12 @@ class _Draws:
             self._ahead = (int(indices[0]), self._start(indices))
 
     def _start(self, indices):
-        wait = time.perf_counter()
-        fn = self._lowered().compiled()
-        self.compile_s += time.perf_counter() - wait
-        return fn(self._dyn, indices)
-
-
-class _DrawProgram:
-    """The lowered draw program of one structure of draws and size of chunk, and the future
-    of its compiled form."""
-
-    def __init__(self, lowered):
-        self.lowered = lowered
-        self.spec = jax.tree.map(lambda o: jax.ShapeDtypeStruct(o.shape, o.dtype),
-                                 lowered.out_info)
-        self._future: concurrent.futures.Future | None = None
-
-    def start(self) -> None:
-        if self._future is None:
-            pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="jaxdyn-draws")
-            self._future = pool.submit(self.lowered.compile)
-            pool.shutdown(wait=False)
-
-    def compiled(self):
-        self.start()
-        assert self._future is not None
-        try:
-            return self._future.result()
-        except BaseException:
-            self._future = None  # (a later call compiles it again)
-            raise
-
-
-_DRAWS: dict = {}
-forgotten_on_clear(_DRAWS.clear)
-
-
-def _draw_program(targets, dyn, static, size: int, dtype, device) -> _DrawProgram:
-    """The draw program of chunks of `size` trajectories on `device`, cached by the structure
-    of its inputs (`dyn`: the distributions' arrays and the key, its arguments; `static`: the
-    rest)."""
-    bare = tuple(t._replace(dist=None) for t in targets)
-    leaves, treedef = jax.tree_util.tree_flatten(static)
-    cache_key = (bare, treedef, tuple(leaves), jax.tree.structure(dyn),
-                 tuple((x.shape, x.dtype) for x in jax.tree.leaves(dyn)), size,
-                 np.dtype(dtype), device)
-    if cache_key not in _DRAWS:
-        def draws(dyn, indices):
-            dists, key = eqx.combine(dyn, static)
-            full = tuple(t._replace(dist=d) for t, d in zip(bare, dists))
-            return jax.vmap(lambda i: _drawn(full, key, i, dtype))(indices)
-
-        where = jax.sharding.SingleDeviceSharding(device)
-        _DRAWS[cache_key] = _DrawProgram(jax.jit(draws, in_shardings=where).lower(
-            dyn, jax.ShapeDtypeStruct((size,), np.uint32, sharding=where)))
-    return _DRAWS[cache_key]
+        start = time.perf_counter()
+        drawn = _draws_of(self.inputs.targets, self.inputs.key, indices, self.inputs.dtype)
+        if not self._made:
+            self._made = True
+            self.compile_s += time.perf_counter() - start
+        return drawn
 
 
 # -- one chunk ---------------------------------------------------------------------------------
@@ -600,12 +545,11 @@ default; the chunk is long runs of arithmetic on contiguous rows, which 512-bit 
 the CPU has them, AVX-512) do about 1.4 times faster. Elsewhere the option changes nothing."""
 
 
-def _compiled_chunk(dyn, static, sharded, config: _ChunkConfig, devices, chunks: int,
-                    beside: Callable[[], None] = lambda: None):
+def _compiled_chunk(dyn, static, sharded, config: _ChunkConfig, devices, chunks: int):
     """The compiled chunk function for these shapes and this configuration (cached), and how
     its inputs are placed: `"per_device"` (a list of single-device programs), a sharding, or
-    `None` (one device); also the seconds spent compiling it now. `beside()` is called where
-    XLA is about to compile it (the draws' program starts compiling beside it).
+    `None` (one device); also the seconds spent compiling it now. The programs `prepare`d
+    meanwhile (the draws') are made ready on the other core while XLA compiles it.
 
     An adaptive run of several chunks on several devices gets one program per device (see
     `_compile_per_device`); a run of one chunk gets one program over all of them: there is no
@@ -624,15 +568,14 @@ def _compiled_chunk(dyn, static, sharded, config: _ChunkConfig, devices, chunks:
     options = CPU_COMPILER_OPTIONS if devices[0].platform == "cpu" else None
     start = time.perf_counter()
     if per_device:
-        _COMPILED[key] = (_compile_per_device(dyn, static, sharded, config, devices, options,
-                                              beside), "per_device")
+        _COMPILED[key] = (_compile_per_device(dyn, static, sharded, config, devices, options),
+                          "per_device")
     else:
-        _COMPILED[key] = _compile_sharded(dyn, static, sharded, config, devices, options,
-                                          beside)
+        _COMPILED[key] = _compile_sharded(dyn, static, sharded, config, devices, options)
     return _COMPILED[key], time.perf_counter() - start
 
 
-def _compile_per_device(dyn, static, sharded, config, devices, options, beside):
+def _compile_per_device(dyn, static, sharded, config, devices, options):
     """One single-device program per device, each given its rows of the chunk.
 
     Per-trajectory stepping needs nothing across devices. (A program spanning several CPU
@@ -651,12 +594,12 @@ def _compile_per_device(dyn, static, sharded, config, devices, options, beside):
         return jax.jit(body).lower(*spec)
 
     lowered = [lower(device) for device in devices]
-    beside()
+    start_prepared()
     with concurrent.futures.ThreadPoolExecutor(len(devices)) as pool:  # XLA frees the GIL
         return list(pool.map(lambda lw: lw.compile(options), lowered))
 
 
-def _compile_sharded(dyn, static, sharded, config, devices, options, beside):
+def _compile_sharded(dyn, static, sharded, config, devices, options):
     """One program over every device (the chunk's rows split across a mesh), or over the one
     device: the compiled program and the sharding of its batched inputs."""
     body = partial(_chunk_core, static=static, config=config, axis_name=None)
@@ -678,7 +621,7 @@ def _compile_sharded(dyn, static, sharded, config, devices, options, beside):
                 partial(_chunk_core, static=static, config=config, axis_name="batch"),
                 mesh=mesh, in_specs=(whole, spec), out_specs=spec, check_vma=False)
     lowered = jax.jit(body, **shardings).lower(dyn, sharded)
-    beside()
+    start_prepared()
     return lowered.compile(options), sharding
 
 
@@ -910,7 +853,8 @@ class _Chunks:
             mode=inputs.mode, max_steps=inputs.max_steps, observe=inputs.observe,
             events=inputs.events, compact_rows=_batch_solve.COMPACT_ROWS)
         self._compile_s = 0.0
-        self.draws = _Draws(inputs, plan.chunk_size, plan.devices[0])
+        self._launched = False
+        self.draws = _Draws(inputs, plan.chunk_size)
         self._dyn_on: list = []  # the shared inputs, on each device
         self._varied: dict[str, np.ndarray] | None = None  # for the chunk files
 
@@ -936,10 +880,12 @@ class _Chunks:
                  {k: np.asarray(np.asarray(v)[rows], inputs.dtype)
                   for k, v in inputs.y_batch.items()},
                  {k: np.asarray(np.asarray(v)[rows]) for k, v in inputs.p_batch.items()})
+        if not self._launched:
+            self._launched = True
+            self.draws.prepare(batch[0])
         (fn, sharding), seconds = _compiled_chunk(self.dyn, self.static,
-                                                  (*batch, self.draws.spec()), self.config,
-                                                  list(devices), self.plan.chunks,
-                                                  self.draws.start)
+                                                  (*batch, self.draws.spec), self.config,
+                                                  list(devices), self.plan.chunks)
         self._compile_s += seconds
         sharded = (*batch, self.draws(batch[0]))
         if following is not None:
