@@ -760,21 +760,7 @@ def _resolve(scene, y0, t1, *, n, key, vary, parameters, t0, ts, observe, keep, 
         atol=atol, dt0=dt0, max_steps=int(max_steps), mode=mode, events=bool(events),
         observe=final_state if observe is None else observe,
         keep=(None if keep else ()) if isinstance(keep, bool) else tuple(keep), vary=vary,
-        messages=_violation_messages(scene, ex_y0))
-
-
-def _violation_messages(scene: Scene, y) -> tuple[str, ...]:
-    """The messages of `scene.violations(y)`, from a trace alone (no check is evaluated: each
-    eager operation would compile a program of its own)."""
-    messages = []
-
-    def flags(y):
-        flags, msgs = scene.violations(y)
-        messages.extend(msgs)
-        return flags
-
-    jax.eval_shape(flags, y)
-    return tuple(messages)
+        messages=scene.violation_messages(ex_y0))
 
 
 def _chunk_size(n: int, d: int, chunk_size) -> int:

@@ -388,6 +388,32 @@ class Scene(eqx.Module):
         msgs = [f"invalid {field}: {allowed}" for field, _, _, allowed in checks]
         return flags, msgs
 
+    def violation_messages(self, y: State) -> tuple[str, ...]:
+        """The messages of `violations(y)`, in the order of its flags, from a trace alone (no
+        check is evaluated: each eager operation would compile a program of its own). Cached
+        per structure of the scene and of `y` (its variables' shapes and dtypes): an ensemble
+        call traces nothing after the first of its structure. A check's field and allowed
+        values are its fixed text (`Check`), so the messages do not depend on the values. A
+        scene holding a Python function (which may hold a caller's tracers) is traced each
+        time, as `check_precision` does."""
+        leaves, treedef = jax.tree_util.tree_flatten(self)
+        key = None if any(callable(x) for x in leaves) else (
+            "violations", treedef, _signature(leaves), tuple(y), _signature(y.values()))
+        found = _MESSAGES.get(key)
+        if found is None:
+            messages: list[str] = []
+
+            def flags(y):
+                flags, msgs = self.violations(y)
+                messages.extend(msgs)
+                return flags
+
+            jax.eval_shape(flags, y)
+            found = tuple(messages)
+            if key is not None:
+                _MESSAGES[key] = found
+        return found
+
     # -- reporting ------------------------------------------------------------------------------
 
     def summary(self, ts, ys: State, valid, t_final, y_final: State,
@@ -415,6 +441,7 @@ class Scene(eqx.Module):
 
 
 _PRECISION: dict = {}  # Scene.check_precision's findings, per structure
+_MESSAGES: dict = {}  # Scene.violation_messages, per structure of the scene and the state
 
 
 def _floating(x) -> bool:

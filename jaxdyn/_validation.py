@@ -18,7 +18,9 @@ from ._errors import (
 )
 
 Check = tuple[str, object, jax.Array | bool, str]
-"""`(field, value, violated, allowed)`."""
+"""`(field, value, violated, allowed)`: `field` names what is checked and `allowed` says what it
+may be, both fixed text (not formatted from the values: under a trace the values are unknown,
+and an ensemble reads the messages once per structure, `Scene.violation_messages`)."""
 
 
 def is_concrete(*xs) -> bool:

@@ -531,6 +531,43 @@ def test_compacting_the_batch_changes_no_trajectory():
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
+
+def test_a_second_call_of_the_same_structure_traces_nothing():
+    # After the first call, an ensemble of the same scene structure with other values (other
+    # moments, other rates, a parameter of one run out of its range) traces and compiles
+    # nothing: the checks' messages come from the first call's trace (per structure), and
+    # they are the ones for these values.
+    traces = []
+
+    def listener(name, *args, **kwargs):
+        if name in ("/jax/core/compile/jaxpr_trace_duration",
+                    "/jax/core/compile/jaxpr_to_mlir_module_duration"):
+            traces.append(name)
+
+    def run(inertia, omega):
+        scene = jd.Scene(jd.RigidBody(inertia=inertia))
+        return jd.ensemble(scene, scene.state(omega=omega), 2.0,
+                           parameters={"inertia": np.array([inertia, [-1.0, 2.0, 2.5],
+                                                            [1.1, 2.0, 2.5]])})
+
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        first = run([1.0, 2.0, 2.5], [0.1, 1.0, 0.1])
+        assert traces  # (the listener sees the first call's tracing)
+        traces.clear()
+        again = run([3.0, 4.0, 5.0], [0.3, -0.2, 0.4])
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
+    assert traces == []
+    for res in (first, again):
+        assert list(res.ok) == [True, False, True]
+        failure, = res.failures()
+        assert failure["index"] == 1 and failure["status"] == "invalid_input"
+        assert failure["message"].startswith("invalid inertia: principal moments"), failure
+    scene = jd.Scene(jd.RigidBody(inertia=[3.0, 4.0, 5.0]))
+    single = jd.simulate(scene, scene.state(omega=[0.3, -0.2, 0.4]), 2.0)
+    np.testing.assert_allclose(again.values["omega"][0], single.y_final["omega"], rtol=1e-9)
+
 @pytest.mark.parametrize("seed", [0, 7, 2**31 - 1, 2**32 + 5, 2**62 + 3, -1, -(2**40), -(2**63)])
 def test_an_integer_key_is_jaxs_key_of_that_seed(seed):
     """An integer `key=` is made on the host (no program compiled for it): the same key as
