@@ -28,6 +28,10 @@
   taken in rounds that call each of the compared functions in turn (so that a slower phase of
   the machine weighs on all of them alike); the steps and the final states of both are
   compared.
+- **Again**: each public entry point (`simulate`, a derived output, `ensemble` in both
+  modes, `fit`, `find_equilibria`, `trace_separatrices`, `torque_free_attitude`) called once,
+  then on the same structure with other values: the second call's traces and compilations,
+  which issue 19 asks to be none, and its wall time.
 - **Samples**: `jd.simulate(..., ts=...)` of the free body over 100 s (about 1000 steps)
   against the number of sample times (1e2 to 1e5; 1e6 without `--quick`), after compilation,
   against a hand-written `jax.jit(diffeqsolve)` with diffrax's `SaveAt(ts)` and against the
@@ -406,6 +410,70 @@ def calls(repeats):
     return out
 
 
+def again():
+    """Issue 19's "no per-call tracing": each public entry point called once, then again on
+    the same structure with other values (other moments, rates, data, momenta, keys); the
+    second call's traces and compilations (JAX's monitoring events) and its wall time."""
+    import jax
+    import numpy as np
+
+    import jaxdyn as jd
+
+    jax.config.update("jax_enable_x64", True)
+    events = []
+
+    def listen(event, duration, **kwargs):
+        if event in ("/jax/core/compile/jaxpr_trace_duration",
+                     "/jax/core/compile/backend_compile_duration"):
+            events.append((event.rsplit("/", 1)[1], kwargs.get("fun_name", "")))
+
+    # (Bodies away from the flat plate, I1 + I2 = I3, where a fit's shape logits run to
+    # infinity and its iterations are many.)
+    free = [jd.Scene(jd.RigidBody(i)) for i in ([1.0, 2.0, 2.5], [2.0, 2.5, 4.0])]
+    rods = [jd.Scene(jd.FallingRod(length=x)) for x in (1.0, 2.5)]
+    rates = ([0.3, 1.0, 0.2], [-0.1, 0.5, 0.7])
+    ts = np.linspace(0.0, 5.0, 41)
+    truth = jd.simulate(free[0], free[0].state(omega=rates[0]), 5.0, ts=ts)
+    rng = np.random.default_rng(0)
+    data = [{"omega": np.asarray(truth.ys["omega"]) + 1e-4 * rng.normal(size=(41, 3))}
+            for _ in range(2)]
+    gyrostat = [jd.Scene(jd.RigidBody([1.0, 2.0, 3.0]), (jd.Rotor(momentum=[0.0, 0.0, h]),))
+                for h in (0.2, 0.5)]
+    cases = {
+        "simulate": lambda k: jd.simulate(free[k], free[k].state(omega=rates[k]), 5.0, ts=ts),
+        "simulate_rod": lambda k: jd.simulate(rods[k], rods[k].state(theta=0.1 + 0.1 * k),
+                                              10.0),
+        "derived_output": lambda k: jd.simulate(free[k], free[k].state(omega=rates[k]), 5.0,
+                                                ts=ts).kinetic_energy,
+        "ensemble": lambda k: jd.ensemble(free[k], free[k].state(omega=rates[k]), 5.0, n=64,
+                                          vary={"omega": jd.Normal(rates[k], 0.01)}, key=k),
+        "ensemble_vmap": lambda k: jd.ensemble(rods[k], rods[k].state(theta=0.1), 10.0, n=64,
+                                               vary={"theta": jd.Uniform(0.05, 0.2)}, key=k,
+                                               mode="vmap"),
+        "fit": lambda k: jd.fit(free[0], ts, data[k], parameters={"inertia": jd.ValidInertia()},
+                                initial=["omega"]),
+        "find_equilibria": lambda k: jd.find_equilibria(gyrostat[k], 1.0 + k),
+        "trace_separatrices": lambda k: jd.trace_separatrices(free[k], 1.0 + k),
+        "torque_free_attitude": lambda k: jd.torque_free_attitude(
+            [1.0, 2.0, 2.5 + 0.4 * k], rates[k], [1.0, 0.0, 0.0, 0.0], ts),
+    }
+    out = {}
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        for name, call in cases.items():
+            jax.block_until_ready(jax.tree.leaves(call(0)))
+            events.clear()
+            start = time.perf_counter()
+            jax.block_until_ready(jax.tree.leaves(call(1)))
+            wall = time.perf_counter() - start
+            traced = [n for e, n in events if e == "jaxpr_trace_duration"]
+            out[name] = {"traces": len(traced), "compilations": len(events) - len(traced),
+                         "traced": sorted(set(traced)), "second_call_ms": 1e3 * wall}
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+    return out
+
+
 def samples(quick):
     import diffrax as dfx
     import jax
@@ -488,6 +556,8 @@ def targets(result: dict) -> dict:
                    calls[problem]["simulate_over_hand"], 1.5)
             target(f"derived_output_over_program_{problem}",
                    calls[problem]["output_over_program"], 2.0)
+    for name, row in result.get("again", {}).items():
+        target(f"traces_on_second_call_{name}", row["traces"], 0)
     imports, commands = result.get("imports", {}), result.get("commands", {})
     if imports:
         target("import_jaxdyn_over_import_jax", imports["jaxdyn_over_jax"], 1.5)
@@ -512,7 +582,7 @@ def main():
                              "19), alternating with this code, and report the ratios")
     parser.add_argument("--rounds", type=int, default=1,
                         help="commands: rounds of cold and warm runs (medians over them)")
-    parser.add_argument("--only", choices=("imports", "commands", "calls", "samples"),
+    parser.add_argument("--only", choices=("imports", "commands", "calls", "again", "samples"),
                         help="one section alone")
     args = parser.parse_args()
     t0 = time.perf_counter()
@@ -520,6 +590,7 @@ def main():
         "imports": lambda: imports(3 if args.quick else 7),
         "commands": lambda: commands(args.quick, args.baseline, args.rounds),
         "calls": lambda: calls(100 if args.quick else 500),
+        "again": again,
         "samples": lambda: samples(args.quick),
     }
     result = {"machine": {"cpus": os.cpu_count(), "python": platform.python_version()}}
