@@ -24,7 +24,7 @@ from ._hybrid import FORWARD, Watch
 from ._outcome import Outcome, to_diffrax
 from ._programs import forgotten_on_clear, start_prepared
 from ._scene import Scene
-from ._simulate import _prepare_run, _simulate, check_tolerances
+from ._simulate import _prepare_run, _simulate, tolerance_values
 from ._solution import Trajectory
 from ._stored_jit import stored_filter_jit
 from ._tolerance import FLOOR, ScaledPIDController
@@ -744,7 +744,7 @@ def _resolve(scene, y0, t1, *, n, key, vary, parameters, t0, ts, observe, keep, 
             f"solver {type(solver).__name__} takes fixed steps: an ensemble's trajectories "
             "take adaptive steps (rtol, atol); use an explicit Runge-Kutta solver with an "
             "error estimate (diffrax.Tsit5, Dopri5, Dopri8), or jd.simulate under jax.vmap")
-    rtol, atol = (float(x) for x in check_tolerances(rtol, atol, t0.dtype))
+    rtol, atol = (float(np.asarray(x, t0.dtype)) for x in tolerance_values(rtol, atol, t0.dtype))
     if mode != "vmap":
         switching = [e.kind for e in scene.effects if e.max_switches]
         if events and switching:  # (a body's modes switch in the engine too)

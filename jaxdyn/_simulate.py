@@ -40,6 +40,13 @@ def check_tolerances(rtol, atol, dtype) -> tuple:
     """`rtol` and `atol` as arrays of `dtype`, refused where the dtype cannot reach them or
     where they are not tolerances (shared by every entry point that integrates). Traced values
     (a jitted function of `rtol`) are not checked."""
+    rtol, atol = tolerance_values(rtol, atol, dtype)
+    return device_array(rtol, dtype), device_array(atol, dtype)
+
+
+def tolerance_values(rtol, atol, dtype) -> tuple:
+    """`check_tolerances` on the host: the tolerances as given (the defaults filled in),
+    checked, without converting them to arrays."""
     atol = 0.0 if atol is None else atol
     if rtol is None:  # the default: 1e-8, or 1e-6 where the dtype cannot reach it (float32)
         rtol = 1e-8 if jnp.finfo(dtype).eps < 1e-9 else 1e-6
@@ -63,7 +70,7 @@ def check_tolerances(rtol, atol, dtype) -> tuple:
                 f"rtol={float(rtol):g}: below what {name} can reach (eps = {eps:.2g}); "
                 f"use rtol within [{4 * eps:.2g}, 1){hint}"
             )
-    return device_array(rtol, dtype), device_array(atol, dtype)
+    return rtol, atol
 
 
 def _prepare_run(scene, y0, t0, t1, ts, solver, rtol, atol, stepsize_controller, dt0,
