@@ -154,8 +154,7 @@ class Scene(eqx.Module):
             return  # nothing in the scene is wider than the state: nothing to widen it
         # (Cached for scenes of arrays and numbers: a Python function, which may hold a
         # caller's tracers, is not kept.)
-        key = None if any(callable(x) for x in leaves) else (
-            treedef, _signature(leaves), tuple(y), _signature(y.values()))
+        key = _structure_key("precision", treedef, leaves, y)
         found = _PRECISION.get(key)
         if found is None:
             spec = {k: jax.ShapeDtypeStruct(jnp.shape(v), jnp.result_type(v)) for k, v in y.items()}
@@ -397,8 +396,7 @@ class Scene(eqx.Module):
         scene holding a Python function (which may hold a caller's tracers) is traced each
         time, as `check_precision` does."""
         leaves, treedef = jax.tree_util.tree_flatten(self)
-        key = None if any(callable(x) for x in leaves) else (
-            "violations", treedef, _signature(leaves), tuple(y), _signature(y.values()))
+        key = _structure_key("violations", treedef, leaves, y)
         found = _MESSAGES.get(key)
         if found is None:
             messages: list[str] = []
@@ -438,6 +436,22 @@ class Scene(eqx.Module):
                 scale = self.body.invariant_scale(name, jnp.linalg.norm(v[0]))
             out[f"{name}_rel_error"] = jnp.max(jnp.where(valid, drift, 0.0)) / scale
         return out
+
+
+def _structure_key(kind: str, treedef, leaves, y) -> tuple | None:
+    """The key of what a trace of the scene (`treedef`, `leaves`) and a state `y` found, the
+    same for every call it holds for: arrays by shape and dtype, any other leaf by its type and
+    value (as a compiled program takes them: fixed); `None` (nothing kept) where a leaf is a
+    Python function, which may hold a caller's tracers, or cannot be hashed."""
+    if any(callable(x) for x in leaves):
+        return None
+    key = (kind, treedef, *(_signature([x]) if hasattr(x, "dtype") else (type(x), x)
+                           for x in leaves), tuple(y), _signature(y.values()))
+    try:
+        hash(key)
+    except TypeError:
+        return None
+    return key
 
 
 _PRECISION: dict = {}  # Scene.check_precision's findings, per structure

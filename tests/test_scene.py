@@ -177,3 +177,30 @@ def test_derived_outputs_of_alternating_trajectories_are_their_own():
     del fewer
     gc.collect()
     assert samples() is None
+
+
+class _Gated(jd.AbstractEffect):
+    """An effect whose checks depend on plain (non-static) Python fields."""
+    kind = "gated-test"
+    gain: jax.Array
+    strict: bool
+    frame: str
+
+    def checks(self):
+        found = [("gated.gain", self.gain, self.gain < 0, "must be >= 0")]
+        if self.strict:
+            found.append(("gated.gain", self.gain, self.gain > 1, "must be <= 1 when strict"))
+        return found
+
+
+def test_check_messages_are_those_of_each_scenes_values():
+    # The messages of a scene's checks are kept per structure (`Scene.violation_messages`,
+    # read by every ensemble call): arrays by shape and dtype, other fields by value, so a
+    # plain field that adds a check gives its own messages, and a string field is a value.
+    body = jd.RigidBody([1.0, 2.0, 2.5])
+    for strict in (False, True, False):
+        scene = jd.Scene(body, (_Gated(jnp.asarray(0.5), strict, "body"),))
+        y = scene.state(omega=[0.1, 1.0, 0.1])
+        flags, fresh = scene.violations(y)
+        assert scene.violation_messages(y) == tuple(fresh)
+        assert len(fresh) == flags.size == 4 + strict
