@@ -16,11 +16,11 @@ import pytest
 # -O0 without its expensive passes), in the workers and in the processes they start (notebook
 # kernels, commands), unless JAX_DISABLE_MOST_OPTIMIZATIONS chooses (`=0`: every test compiled
 # as a user's programs are). Tests marked `optimized` compile as a user's programs do (the
-# `_optimisation` fixture below): those whose time is running (a posterior's sampling, the
-# longest notebooks: 1.6-3.4x slower otherwise), and those that compare two programs bit for
-# bit or bound the round-off of the code a user runs. Fresh-cache runs of the suite on 2
-# cores, one after the other (6 Dec 2026): 613-642 s with every test optimised, 562 s with none
-# (six comparisons failing), 504 s so.
+# `_optimisation` fixture below): those whose time is running (a posterior's sampling: 1.6-3.4x
+# slower otherwise), and those that compare two programs bit for bit or bound the round-off of
+# the code a user runs; the longest notebooks' kernels likewise (`test_notebooks.py`).
+# Fresh-cache runs of the suite on 2 cores, one after the other (6 Dec 2026): 613-642 s with
+# every test optimised, 562 s with none (six comparisons failing), 504 s so.
 os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
 from jaxdyn._xla import prefer_fast_compilation  # noqa: E402
 

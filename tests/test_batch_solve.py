@@ -193,7 +193,9 @@ def test_stages_in_a_loop_are_the_unrolled_stages(solver, monkeypatch):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=0, atol=1e-14 * scale)
 
 
-@pytest.mark.parametrize("solver", [dfx.Tsit5(), dfx.Dopri8()], ids=lambda s: type(s).__name__)
+@pytest.mark.parametrize("solver", [dfx.Tsit5(), pytest.param(dfx.Dopri8(),
+                                                               marks=pytest.mark.sweep)],
+                         ids=lambda s: type(s).__name__)  # (Dopri8's events: a sweep)
 def test_events_are_located_where_diffeqsolve_locates_them(solver):
     """The pendulum stopped when it first swings through q = -0.05: the same steps, and the
     same event time (Illinois on the engine's side, Newton on diffrax's)."""
