@@ -121,7 +121,12 @@ def commands(quick, baseline=None, rounds=1):
     rounds so that a phase of the machine weighs on both alike; medians over the rounds."""
     from pathlib import Path
 
-    tmp = Path(tempfile.mkdtemp(prefix="jaxdyn-latency-"))
+    # (The cold starts' caches and the fit's data, removed afterwards.)
+    with tempfile.TemporaryDirectory(prefix="jaxdyn-latency-") as folder:
+        return _commands_in(Path(folder), quick, baseline, rounds)
+
+
+def _commands_in(tmp, quick, baseline, rounds):
     data = tmp / "rates.csv"
     _fit_data(data)
     cases = {
