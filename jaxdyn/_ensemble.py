@@ -333,6 +333,14 @@ class _Draws:
             drawn, self._ahead = self._ahead[1], None
         else:
             drawn = self._start(indices)
+        return self._on_host(drawn)
+
+    def values(self, indices: np.ndarray) -> dict[str, np.ndarray]:
+        """The draws of trajectories `indices`, drawn again (the next chunk's, started
+        `ahead`, are left for its launch)."""
+        return self._on_host(self._start(indices)) if self.inputs.targets else {}
+
+    def _on_host(self, drawn) -> dict[str, np.ndarray]:
         return {k: np.asarray(drawn[k], s.dtype).reshape(s.shape) for k, s in self.spec.items()}
 
     def ahead(self, indices: np.ndarray) -> None:
@@ -1002,7 +1010,7 @@ def _varied(inputs: _Inputs, draws: _Draws) -> Callable[[], dict[str, np.ndarray
     def varied():
         out = dict(given)
         if inputs.targets:
-            chunks = [draws(np.arange(lo, lo + draws.size, dtype=np.uint32))
+            chunks = [draws.values(np.arange(lo, lo + draws.size, dtype=np.uint32))
                       for lo in range(0, inputs.n, draws.size)]
             out.update({k: np.concatenate([c[k] for c in chunks])[:inputs.n]
                         for k in chunks[0]})

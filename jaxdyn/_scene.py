@@ -445,7 +445,7 @@ def _structure_key(kind: str, treedef, leaves, y) -> tuple | None:
     Python function, which may hold a caller's tracers, or cannot be hashed."""
     if any(callable(x) for x in leaves):
         return None
-    key = (kind, treedef, *(_signature([x]) if hasattr(x, "dtype") else (type(x), x)
+    key = (kind, treedef, *(_signature([x])[0] if hasattr(x, "dtype") else (type(x), x)
                            for x in leaves), tuple(y), _signature(y.values()))
     try:
         hash(key)

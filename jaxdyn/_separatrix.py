@@ -33,8 +33,6 @@ Reference: P. C. Hughes, *Spacecraft Attitude Dynamics* (Wiley, 1986), on the to
 and the gyrostat.
 """
 
-import functools
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -223,13 +221,6 @@ def _positive_scalar(field: str, value, dtype):
 # -- the finder --------------------------------------------------------------------------------
 
 
-@functools.cache
-def _starts(dtype) -> tuple[Array, Array]:
-    """The unit momentum and the Newton solves' starting directions, as arrays of `dtype` on
-    the device: the same for every call, so put there once per dtype."""
-    return device_array(1.0, dtype), device_array(_fibonacci_sphere(_NUM_STARTS), dtype)
-
-
 def _fibonacci_sphere(n: int) -> np.ndarray:
     k = np.arange(n) + 0.5
     z = 1 - 2 * k / n
@@ -389,9 +380,10 @@ def find_equilibria(scene: Scene, momentum: float | ArrayLike = 1.0) -> Equilibr
     _check_scene(scene)
     dtype = _scene_dtype(scene)
     momentum = _positive_scalar("momentum", momentum, dtype)
+    directions = jnp.asarray(_fibonacci_sphere(_NUM_STARTS), dtype)
     unit_scene, rate_unit, _ = _normalised(scene, momentum)
     w, ok, energy, eig, rel, unstable, scale = jax.device_get(
-        _solve_all(unit_scene, *_starts(jnp.dtype(dtype)))
+        _solve_all(unit_scene, device_array(1.0, dtype), directions)
     )
     tol = _same_point_tol(dtype) * float(scale)
     found: list[int] = []
