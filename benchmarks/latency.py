@@ -39,6 +39,14 @@
   way jaxdyn saved before (the sample buffer in the solver state, which diffrax copies at
   every step: `O(samples x steps)`; up to 1e4 samples), in the same process.
 
+- **Loops**: `jd.simulate` of each built-in scene after compilation, saving its start and end
+  and at 500 times, in two child processes that differ only in XLA:CPU's small-loop threshold:
+  XLA's default (1 KiB) and the command's setting (`jaxdyn._xla`: a while loop touching less
+  than 64 KiB per iteration compiled as one function). Medians of repeats in each child,
+  the children alternating over `--rounds` rounds (a process-wide setting: no one process can
+  hold both); per scene the median of the rounds, the ratio default / setting, and each
+  child's compile time of its first calls.
+
 - **Targets**: issue 19's targets that the sections run measured, each with its value, its
   bound and whether it is met (`targets`): `simulate` and derived outputs against their
   references, the warm `jaxdyn run` against importing what it needs (`import jaxdyn` itself
@@ -568,6 +576,63 @@ def samples(quick):
     return out
 
 
+LOOP_SCENES = ("falling-rod", "torque-free", "intermediate-axis", "gyrostat", "dual-spinner",
+               "explorer-1", "gravity-gradient", "reaction-wheels", "wheels-with-dumping",
+               "thruster-despin", "bdot-detumble", "rough-floor-rod")
+
+
+def _loops_child(repeats):
+    """One child of `loops`: per scene, the median call of `jd.simulate` (start and end; 500
+    saved times), and the first calls' time (compilation), as JSON on stdout."""
+    import jax
+    import numpy as np
+
+    import jaxdyn as jd
+
+    jax.config.update("jax_enable_x64", True)
+    out = {}
+    for name in LOOP_SCENES:
+        s = jd.load_scene(name)
+        ts = np.linspace(0.0, s.t1, 500)
+        start = time.perf_counter()
+        jax.block_until_ready(jd.simulate(s.scene, s.y0, s.t1).ys)
+        jax.block_until_ready(jd.simulate(s.scene, s.y0, s.t1, ts=ts).ys)
+        first = time.perf_counter() - start
+        ends, sampled = _medians_us([
+            lambda s=s: jd.simulate(s.scene, s.y0, s.t1).ys,
+            lambda s=s, ts=ts: jd.simulate(s.scene, s.y0, s.t1, ts=ts).ys], repeats)
+        out[name] = {"ends_ms": ends / 1e3, "ts500_ms": sampled / 1e3, "first_calls_s": first}
+    print(json.dumps(out))
+
+
+def loops(rounds, repeats):
+    """`_loops_child` with XLA's default small-loop threshold and with the command's, the
+    two alternating over `rounds` rounds (both with the command's other setting)."""
+    from jaxdyn import _xla
+
+    default = f"--{_xla.EXTRA}={_xla.LOOP_OPTION}=1024"
+    flags = {"default": f"{_xla.SETTING} {default}",
+             "setting": f"{_xla.SETTING} {_xla.LOOP_SETTING}"}
+    runs = {k: [] for k in flags}
+    for _ in range(rounds):
+        for key, xla_flags in flags.items():
+            env = {**os.environ, "XLA_FLAGS": xla_flags, "JAXDYN_CACHE_DIR": "off"}
+            proc = subprocess.run([sys.executable, __file__, "--loops-child", str(repeats)],
+                                  capture_output=True, text=True, env=env, check=True)
+            runs[key].append(json.loads(proc.stdout))
+    out = {"flags": flags, "rounds": rounds, "scenes": {}}
+    for name in LOOP_SCENES:
+        row = {}
+        for key in flags:
+            for field in ("ends_ms", "ts500_ms", "first_calls_s"):
+                row[f"{field}_{key}"] = statistics.median(r[name][field] for r in runs[key])
+        for field in ("ends_ms", "ts500_ms"):
+            row[f"{field}_default_over_setting"] = (row[f"{field}_default"]
+                                                    / row[f"{field}_setting"])
+        out["scenes"][name] = row
+    return out
+
+
 def targets(result: dict) -> dict:
     """Issue 19's targets measured by the sections in `result`: value, bound, met."""
     out = {}
@@ -611,9 +676,13 @@ def main():
                              "19), alternating with this code, and report the ratios")
     parser.add_argument("--rounds", type=int, default=1,
                         help="commands: rounds of cold and warm runs (medians over them)")
-    parser.add_argument("--only", choices=("imports", "commands", "calls", "again", "samples"),
+    parser.add_argument("--only",
+                        choices=("imports", "commands", "calls", "again", "samples", "loops"),
                         help="one section alone")
+    parser.add_argument("--loops-child", type=int, metavar="REPEATS", help=argparse.SUPPRESS)
     args = parser.parse_args()
+    if args.loops_child:
+        return _loops_child(args.loops_child)
     t0 = time.perf_counter()
     sections = {
         "imports": lambda: imports(3 if args.quick else 7),
@@ -621,6 +690,7 @@ def main():
         "calls": lambda: calls(100 if args.quick else 500),
         "again": again,
         "samples": lambda: samples(args.quick),
+        "loops": lambda: loops(max(args.rounds, 3), 5 if args.quick else 15),
     }
     result = {"machine": {"cpus": os.cpu_count(), "python": platform.python_version()}}
     for name, section in sections.items():

@@ -1,16 +1,37 @@
 """XLA:CPU's compiler options for the `jaxdyn` command and the test suite.
 
-XLA:CPU emits each fusion by its MLIR-based fusion emitters by default; its earlier
-(LLVM IR) emitters compile jaxdyn's programs in about 0.6 of the time and run them as fast
-(`benchmarks/latency.py`: the compilation of a cold `jaxdyn run`, `jaxdyn fit`; the run of an
-ensemble the same or faster). The command therefore starts XLA with
-`--xla_cpu_use_fusion_emitters=false`, unless `XLA_FLAGS` already says which emitters to use.
-From Python, set it yourself before JAX starts its backend:
-`XLA_FLAGS=--xla_cpu_use_fusion_emitters=false python ...` (nothing in jaxdyn changes
-a process-wide setting behind a user's back).
+Two settings, each added to `XLA_FLAGS` (read when JAX starts its backend) unless the user's
+`XLA_FLAGS` already names it (`prefer_fast_programs`):
 
-XLA aborts the process on a flag it does not know, so the flag is added only where this
-jaxlib's XLA has it: its name is looked for in jaxlib's compiled libraries (about 30 ms).
+- **The earlier fusion emitters.** XLA:CPU emits each fusion by its MLIR-based fusion emitters
+  by default; its earlier (LLVM IR) emitters compile jaxdyn's programs in about 0.6 of the
+  time and run them as fast (`benchmarks/latency.py`: the compilation of a cold `jaxdyn run`,
+  `jaxdyn fit`; the run of an ensemble the same or faster): `--xla_cpu_use_fusion_emitters=false`.
+- **Small loops compiled whole.** XLA:CPU runs a program as a sequence of kernels, one per
+  fusion or operation, each launched by its runtime (a loop's condition and body are
+  launched anew at each iteration); a while loop whose iteration touches less than a
+  threshold of memory (1 KiB by default) and calls no library routine is compiled instead as
+  one function, loop included (`SmallWhileLoopHoistingPass`). The step loop of a single run
+  touches a few KiB (its state, the solver's stages, a buffer of saved samples), so each of
+  its steps launched dozens of kernels, most of the run's time. With the threshold at 64 KiB
+  (`--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=65536`) the step
+  loop and the sample writer inside it are each one function, and the same runs took
+  (`jd.simulate` of the built-in scenes, 2-core machine, 8 Dec 2026, medians of 15 calls):
+  the falling rod 0.30 -> 0.21 ms, the torque-free body 0.65 -> 0.34 ms (with 500 saved
+  times 1.98 -> 0.65 ms), the reaction wheels 1.66 -> 0.47 ms, the thruster despin
+  20.5 -> 2.3 ms, the B-dot detumble 10.0 -> 2.1 ms. Compilation took as long, and ensembles
+  ran as fast (their batched loops touch more than the threshold). The arithmetic is the
+  same, compiled into one function instead of several (`tests/test_xla.py` compares a
+  command's results).
+
+From Python, set them yourself before JAX starts its backend:
+`XLA_FLAGS="--xla_cpu_use_fusion_emitters=false
+--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=65536" python ...`
+(nothing in jaxdyn changes a process-wide setting behind a user's back).
+
+XLA aborts the process on a flag it does not know, so a setting is added only where this
+jaxlib's XLA has it: its names are looked for in jaxlib's compiled libraries (one pass over
+them, a few milliseconds with the files in the page cache).
 
 The command's processes also load LAPACK for JAX without importing `scipy.linalg`
 (`lapack_without_scipy_linalg`): JAX's CPU kernels for LU, QR, Cholesky and the like take
@@ -30,37 +51,54 @@ from pathlib import Path
 
 FLAG = "xla_cpu_use_fusion_emitters"
 SETTING = f"--{FLAG}=false"
+EXTRA = "xla_backend_extra_options"
+LOOP_OPTION = "xla_cpu_small_while_loop_byte_threshold"
+LOOP_BYTES = 65536
+LOOP_SETTING = f"--{EXTRA}={LOOP_OPTION}={LOOP_BYTES}"
+# (the name that says the user chose, in `XLA_FLAGS`; the setting; the names XLA must know)
+SETTINGS = ((FLAG, SETTING, (FLAG,)), (EXTRA, LOOP_SETTING, (EXTRA, LOOP_OPTION)))
 _SUFFIXES = (".so", ".pyd", ".dll", ".dylib")
 
 
-def known(flag: str) -> bool:
-    """Whether the installed jaxlib's XLA defines `flag` (its name in jaxlib's libraries)."""
+def known(*flags: str) -> bool:
+    """Whether the installed jaxlib's XLA defines every one of `flags` (their names in
+    jaxlib's libraries, looked for in one pass over them)."""
+    return not _missing(flags)
+
+
+def _missing(flags) -> set:
+    """Those of `flags` whose names are in none of jaxlib's compiled libraries."""
+    missing = set(flags)
     spec = importlib.util.find_spec("jaxlib")  # (finds it without importing it)
     if spec is None or not spec.submodule_search_locations:
-        return False
-    needle = flag.encode()
+        return missing
     for directory in spec.submodule_search_locations:
         paths = [p for p in Path(directory).iterdir() if p.suffix in _SUFFIXES]
         for path in sorted(paths, key=lambda p: -p.stat().st_size):  # XLA's is the largest
             try:
                 with open(path, "rb") as f, mmap.mmap(f.fileno(), 0,
                                                       access=mmap.ACCESS_READ) as m:
-                    if m.find(needle) >= 0:
-                        return True
+                    missing = {flag for flag in missing if m.find(flag.encode()) < 0}
             except (OSError, ValueError):  # unreadable, or empty
                 continue
-    return False
+            if not missing:
+                return missing
+    return missing
 
 
-def prefer_fast_compilation() -> bool:
-    """Add `--xla_cpu_use_fusion_emitters=false` to `XLA_FLAGS` (read when JAX starts its
-    backend) where the user has not chosen the emitters and this XLA knows the flag. Returns
-    whether it was added."""
+def prefer_fast_programs() -> tuple[str, ...]:
+    """Add each of `SETTINGS` (the earlier fusion emitters; small loops compiled whole: see
+    above) to `XLA_FLAGS` (read when JAX starts its backend) where the user's `XLA_FLAGS` does
+    not already name it and this XLA knows it. Returns the settings added."""
     flags = os.environ.get("XLA_FLAGS", "")
-    if FLAG in flags or not known(FLAG):
-        return False
-    os.environ["XLA_FLAGS"] = f"{flags} {SETTING}".strip()
-    return True
+    wanted = [(setting, names) for chosen, setting, names in SETTINGS if chosen not in flags]
+    if not wanted:
+        return ()
+    missing = _missing({name for _, names in wanted for name in names})
+    added = tuple(setting for setting, names in wanted if not missing.intersection(names))
+    if added:
+        os.environ["XLA_FLAGS"] = " ".join([flags, *added]).strip()
+    return added
 
 
 _CYTHON = ("cython_blas", "cython_lapack")

@@ -6,10 +6,11 @@ import pytest
 
 # XLA:CPU's flags for the whole run, set before JAX starts its backend (inherited by the
 # notebook kernels and the commands the tests start). The command's own choice first
-# (`jaxdyn._xla`: XLA's earlier fusion emitters, where this XLA has them, unless XLA_FLAGS
-# names the emitters): it halves the suite's compilation (1034 s -> 528 s of XLA time in the
-# workers, 1091 s -> 772 s of wall time on 2 cores, 28 Nov 2026) and runs the programs as
-# fast. Then any of JAXDYN_TEST_XLA_FLAGS, added to them.
+# (`jaxdyn._xla`: XLA's earlier fusion emitters, and small loops compiled whole, each where
+# this XLA has it, unless XLA_FLAGS names it): the emitters halve the suite's compilation
+# (1034 s -> 528 s of XLA time in the workers, 1091 s -> 772 s of wall time on 2 cores,
+# 28 Nov 2026) and run the programs as fast; a single run's step loop, compiled whole, runs
+# 1.4-9x faster. Then any of JAXDYN_TEST_XLA_FLAGS, added to them.
 #
 # Most tests spend their time in XLA compiling programs that then run for milliseconds, so XLA
 # compiles them with most optimisations off (JAX's `jax_disable_most_optimizations`: LLVM at
@@ -22,9 +23,9 @@ import pytest
 # Fresh-cache runs of the suite on 2 cores, one after the other (6 Dec 2026): 613-642 s with
 # every test optimised, 562 s with none (six comparisons failing), 504 s so.
 os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
-from jaxdyn._xla import prefer_fast_compilation  # noqa: E402
+from jaxdyn._xla import prefer_fast_programs  # noqa: E402
 
-prefer_fast_compilation()
+prefer_fast_programs()
 if os.environ.get("JAXDYN_TEST_XLA_FLAGS"):
     os.environ["XLA_FLAGS"] = " ".join(
         filter(None, (os.environ.get("XLA_FLAGS", ""), os.environ["JAXDYN_TEST_XLA_FLAGS"])))

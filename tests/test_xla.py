@@ -1,6 +1,6 @@
-"""XLA's compiler flag for the command (`jaxdyn._xla`): added only where the user has not
-chosen and where this XLA knows it (XLA aborts on an unknown flag), and the command and a
-program compiled with it give the same numbers to round-off."""
+"""XLA's compiler settings for the command (`jaxdyn._xla`): each added only where the user has
+not chosen it and where this XLA knows it (XLA aborts on an unknown flag), and the command
+gives the same numbers to round-off with them as with XLA's defaults."""
 
 import json
 import os
@@ -16,30 +16,62 @@ def test_an_unknown_flag_is_not_known():
     assert not _xla.known("xla_cpu_no_such_flag_in_any_xla")
 
 
+def test_known_looks_for_every_name():
+    assert _xla.known() and not _xla.known(_xla.FLAG, "xla_cpu_no_such_flag_in_any_xla")
+    assert _xla.known(_xla.FLAG, _xla.EXTRA) == (_xla.known(_xla.FLAG) and _xla.known(_xla.EXTRA))
+
+
+def _knows(names):
+    return all(_xla.known(name) for name in names)
+
+
 def test_the_users_choice_is_kept(monkeypatch):
+    # Each setting is left out where the user's flags name it; the other is still added.
     for value in ("--xla_cpu_use_fusion_emitters=true", "--xla_cpu_use_fusion_emitters"):
         monkeypatch.setenv("XLA_FLAGS", value)
-        assert _xla.prefer_fast_compilation() is False
-        assert os.environ["XLA_FLAGS"] == value
+        loops = _knows(_xla.SETTINGS[1][2])
+        assert _xla.prefer_fast_programs() == ((_xla.LOOP_SETTING,) if loops else ())
+        assert os.environ["XLA_FLAGS"] == value + (f" {_xla.LOOP_SETTING}" if loops else "")
+    mine = "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=512"
+    monkeypatch.setenv("XLA_FLAGS", mine)
+    emitters = _xla.known(_xla.FLAG)
+    assert _xla.prefer_fast_programs() == ((_xla.SETTING,) if emitters else ())
+    assert os.environ["XLA_FLAGS"] == mine + (f" {_xla.SETTING}" if emitters else "")
+    monkeypatch.setenv("XLA_FLAGS", f"{mine} --xla_cpu_use_fusion_emitters=true")
+    assert _xla.prefer_fast_programs() == ()
 
 
 def test_added_where_known_and_the_users_other_flags_kept(monkeypatch):
+    expected = tuple(setting for _, setting, names in _xla.SETTINGS if _knows(names))
     monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
-    added = _xla.prefer_fast_compilation()
-    assert added == _xla.known(_xla.FLAG)
-    expected = "--xla_force_host_platform_device_count=2" + (f" {_xla.SETTING}" if added else "")
-    assert os.environ["XLA_FLAGS"] == expected
+    assert _xla.prefer_fast_programs() == expected
+    assert os.environ["XLA_FLAGS"] == " ".join(["--xla_force_host_platform_device_count=2",
+                                                *expected])
     monkeypatch.delenv("XLA_FLAGS")
-    assert _xla.prefer_fast_compilation() == added
-    assert os.environ.get("XLA_FLAGS", "") == (_xla.SETTING if added else "")
+    assert _xla.prefer_fast_programs() == expected
+    assert os.environ.get("XLA_FLAGS", "") == " ".join(expected)
+    assert _xla.prefer_fast_programs() == ()  # (now named: nothing added twice)
 
 
-@pytest.mark.skipif(not _xla.known(_xla.FLAG), reason="this jaxlib's XLA lacks the flag")
-def test_the_command_gives_the_same_numbers_with_either_emitters(tmp_path):
-    """`jaxdyn run --json` (the falling rod) with XLA's default emitters and with the
-    command's: the same results to round-off, both against the energy integral's reference."""
+def test_an_unknown_setting_is_not_added(monkeypatch):
+    monkeypatch.setattr(_xla, "SETTINGS", (*_xla.SETTINGS, (
+        "xla_cpu_no_such_flag_in_any_xla", "--xla_cpu_no_such_flag_in_any_xla=1",
+        ("xla_cpu_no_such_flag_in_any_xla",))))
+    monkeypatch.delenv("XLA_FLAGS", raising=False)
+    assert "--xla_cpu_no_such_flag_in_any_xla=1" not in _xla.prefer_fast_programs()
+    assert "no_such_flag" not in os.environ.get("XLA_FLAGS", "")
+
+
+@pytest.mark.skipif(not _xla.known(_xla.FLAG, _xla.EXTRA),
+                    reason="this jaxlib's XLA lacks the flags")
+def test_the_command_gives_the_same_numbers_with_xlas_defaults(tmp_path):
+    """`jaxdyn run --json` (the falling rod) with XLA's default emitters and small-loop
+    threshold (1 KiB), and with the command's settings: the same results to round-off, both
+    against the energy integral's reference."""
+    defaults = ("--xla_cpu_use_fusion_emitters=true --xla_backend_extra_options="
+                "xla_cpu_small_while_loop_byte_threshold=1024")
     outs = []
-    for flags in ("--xla_cpu_use_fusion_emitters=true", ""):
+    for flags in (defaults, ""):
         env = {**os.environ, "XLA_FLAGS": flags, "JAXDYN_CACHE_DIR": "off"}
         proc = subprocess.run([sys.executable, "-m", "jaxdyn._cli", "run", "--json"],
                               capture_output=True, text=True, timeout=600, env=env)
