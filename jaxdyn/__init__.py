@@ -14,6 +14,7 @@ _LAZY = {  # public name -> (module, name in it)
     "AbstractBody": ("._body", "AbstractBody"),
     "animate": ("._animate", "animate"),
     "enable_compilation_cache": ("._cache", "enable_compilation_cache"),
+    "prefer_fast_programs": ("._xla", "prefer_fast_programs"),
     "AbstractDistribution": ("._distributions", "AbstractDistribution"),
     "Fixed": ("._distributions", "Fixed"),
     "LogNormal": ("._distributions", "LogNormal"),
@@ -223,3 +224,4 @@ if TYPE_CHECKING:  # the same names, for type checkers and editors
     from ._solution import Trajectory as Trajectory
     from ._solvers import RK4 as RK4, RotationSplitting as RotationSplitting
     from ._validation import ParameterError as ParameterError
+    from ._xla import prefer_fast_programs as prefer_fast_programs

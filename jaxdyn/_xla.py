@@ -24,10 +24,11 @@ Two settings, each added to `XLA_FLAGS` (read when JAX starts its backend) unles
   same, compiled into one function instead of several (`tests/test_xla.py` compares a
   command's results).
 
-From Python, set them yourself before JAX starts its backend:
-`XLA_FLAGS="--xla_cpu_use_fusion_emitters=false
---xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=65536" python ...`
-(nothing in jaxdyn changes a process-wide setting behind a user's back).
+In Python, `jd.prefer_fast_programs()` (this module's function) adds them when called first,
+before JAX starts its backend; or start Python with `XLA_FLAGS="--xla_cpu_use_fusion_emitters=false
+--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=65536"`. Nothing in
+jaxdyn changes a process-wide setting behind a user's back: only the command and the test
+suite call it themselves.
 
 XLA aborts the process on a flag it does not know, so a setting is added only where this
 jaxlib's XLA has it: its names are looked for in jaxlib's compiled libraries (one pass over
@@ -87,18 +88,53 @@ def _missing(flags) -> set:
 
 
 def prefer_fast_programs() -> tuple[str, ...]:
-    """Add each of `SETTINGS` (the earlier fusion emitters; small loops compiled whole: see
-    above) to `XLA_FLAGS` (read when JAX starts its backend) where the user's `XLA_FLAGS` does
-    not already name it and this XLA knows it. Returns the settings added."""
+    """Compile the programs of this process as the `jaxdyn` command compiles its own: XLA's
+    earlier fusion emitters, and small loops compiled whole, so that a single run's step loop
+    is one function instead of dozens of kernels launched per step (`jd.simulate` of the
+    built-in scenes 1.2-10x faster after compilation; the README's latency section).
+
+    Each setting is added to `XLA_FLAGS` unless `XLA_FLAGS` already names it, and only where
+    this jaxlib's XLA knows it (XLA aborts the process on a flag it does not know). XLA reads
+    `XLA_FLAGS` once, when JAX starts its backend (the first computation, not `import jax`),
+    and the settings hold for every program of the process, yours too: call this first, in a
+    notebook's first cell or at the top of a script. jaxdyn never calls it in your process.
+
+    **Returns:**
+
+    The settings added (none where each is named already or unknown to this XLA).
+
+    **Raises:**
+
+    `RuntimeError` where a setting would be added but JAX has already started its backend
+    (XLA would not read it): `XLA_FLAGS` is then left as it was.
+    """
     flags = os.environ.get("XLA_FLAGS", "")
     wanted = [(setting, names) for chosen, setting, names in SETTINGS if chosen not in flags]
     if not wanted:
         return ()
     missing = _missing({name for _, names in wanted for name in names})
     added = tuple(setting for setting, names in wanted if not missing.intersection(names))
+    if added and _backend_started():
+        raise RuntimeError(
+            "prefer_fast_programs: JAX has already started its backend, and XLA read XLA_FLAGS "
+            "then; call it before JAX runs anything (first in the notebook or script, after "
+            "a restart of the kernel), or start Python with "
+            f"XLA_FLAGS=\"{' '.join(added)}\"")
     if added:
         os.environ["XLA_FLAGS"] = " ".join([flags, *added]).strip()
     return added
+
+
+def _backend_started() -> bool:
+    """Whether JAX has started its backend (so that XLA has read `XLA_FLAGS`)."""
+    if "jax" not in sys.modules:  # (the command, before it imports JAX)
+        return False
+    try:
+        from jax._src import xla_bridge
+
+        return bool(xla_bridge.backends_are_initialized())
+    except (ImportError, AttributeError):  # (another JAX: cannot tell, so as before)
+        return False
 
 
 _CYTHON = ("cython_blas", "cython_lapack")

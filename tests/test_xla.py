@@ -9,6 +9,7 @@ import sys
 
 import pytest
 
+import jaxdyn as jd
 from jaxdyn import _xla
 
 
@@ -25,7 +26,13 @@ def _knows(names):
     return all(_xla.known(name) for name in names)
 
 
-def test_the_users_choice_is_kept(monkeypatch):
+@pytest.fixture
+def before_jax_starts(monkeypatch):
+    """As in a process whose JAX backend has not started (this worker's has)."""
+    monkeypatch.setattr(_xla, "_backend_started", lambda: False)
+
+
+def test_the_users_choice_is_kept(monkeypatch, before_jax_starts):
     # Each setting is left out where the user's flags name it; the other is still added.
     for value in ("--xla_cpu_use_fusion_emitters=true", "--xla_cpu_use_fusion_emitters"):
         monkeypatch.setenv("XLA_FLAGS", value)
@@ -41,7 +48,7 @@ def test_the_users_choice_is_kept(monkeypatch):
     assert _xla.prefer_fast_programs() == ()
 
 
-def test_added_where_known_and_the_users_other_flags_kept(monkeypatch):
+def test_added_where_known_and_the_users_other_flags_kept(monkeypatch, before_jax_starts):
     expected = tuple(setting for _, setting, names in _xla.SETTINGS if _knows(names))
     monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
     assert _xla.prefer_fast_programs() == expected
@@ -53,13 +60,63 @@ def test_added_where_known_and_the_users_other_flags_kept(monkeypatch):
     assert _xla.prefer_fast_programs() == ()  # (now named: nothing added twice)
 
 
-def test_an_unknown_setting_is_not_added(monkeypatch):
+def test_an_unknown_setting_is_not_added(monkeypatch, before_jax_starts):
     monkeypatch.setattr(_xla, "SETTINGS", (*_xla.SETTINGS, (
         "xla_cpu_no_such_flag_in_any_xla", "--xla_cpu_no_such_flag_in_any_xla=1",
         ("xla_cpu_no_such_flag_in_any_xla",))))
     monkeypatch.delenv("XLA_FLAGS", raising=False)
     assert "--xla_cpu_no_such_flag_in_any_xla=1" not in _xla.prefer_fast_programs()
     assert "no_such_flag" not in os.environ.get("XLA_FLAGS", "")
+
+
+def test_too_late_once_jax_has_started(monkeypatch):
+    # This worker's backend has started: XLA read XLA_FLAGS then, so adding to them would do
+    # nothing; said so, and XLA_FLAGS left as it was. Nothing to add: nothing to say.
+    import jax
+
+    jax.devices()  # (starts the backend, where no test before it did)
+    assert _xla._backend_started()
+    monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=1")
+    if any(_knows(names) for _, _, names in _xla.SETTINGS):
+        with pytest.raises(RuntimeError, match="before JAX runs anything"):
+            jd.prefer_fast_programs()
+    assert os.environ["XLA_FLAGS"] == "--xla_force_host_platform_device_count=1"
+    monkeypatch.setenv("XLA_FLAGS", " ".join(s for _, s, _ in _xla.SETTINGS))
+    assert jd.prefer_fast_programs() == ()
+
+
+_HOISTED = r"""
+import sys
+import jaxdyn as jd
+if sys.argv[1] == "prefer":
+    print(" ".join(jd.prefer_fast_programs()), file=sys.stderr)
+import jax
+import jax.numpy as jnp
+
+
+def loop(x):  # each iteration touches 16 KiB: above XLA's default threshold, below ours
+    return jax.lax.while_loop(lambda c: c[0] < 10, lambda c: (c[0] + 1, jnp.sin(c[1])),
+                              (0, x))[1]
+
+
+text = jax.jit(loop).lower(jnp.ones(2048, jnp.float32)).compile().as_text()
+print("xla_cpu_small_call" in text)
+"""
+
+
+@pytest.mark.skipif(not _xla.known(_xla.EXTRA, _xla.LOOP_OPTION),
+                    reason="this jaxlib's XLA lacks the small-loop option")
+def test_a_python_process_gets_small_loops_compiled_whole():
+    """`jd.prefer_fast_programs()` first in a fresh process: a loop touching 16 KiB per
+    iteration is compiled as one function (XLA's `xla_cpu_small_call`); without it, not."""
+    hoisted = {}
+    for how in ("prefer", "plain"):
+        env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+        proc = subprocess.run([sys.executable, "-c", _HOISTED, how], capture_output=True,
+                              text=True, timeout=300, env=env)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        hoisted[how] = proc.stdout.split()[-1] == "True"
+    assert hoisted == {"prefer": True, "plain": False}
 
 
 @pytest.mark.skipif(not _xla.known(_xla.FLAG, _xla.EXTRA),
