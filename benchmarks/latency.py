@@ -617,9 +617,8 @@ def loops(rounds, repeats):
     for _ in range(rounds):
         for key, xla_flags in flags.items():
             env = {**os.environ, "XLA_FLAGS": xla_flags, "JAXDYN_CACHE_DIR": "off"}
-            proc = subprocess.run([sys.executable, __file__, "--loops-child", str(repeats)],
-                                  capture_output=True, text=True, env=env, check=True)
-            runs[key].append(json.loads(proc.stdout))
+            _, stdout = _wall([sys.executable, __file__, "--loops-child", str(repeats)], env)
+            runs[key].append(json.loads(stdout))
     out = {"flags": flags, "rounds": rounds, "scenes": {}}
     for name in LOOP_SCENES:
         row = {}
@@ -675,14 +674,15 @@ def main():
                              "example a virtual environment holding the code before issue "
                              "19), alternating with this code, and report the ratios")
     parser.add_argument("--rounds", type=int, default=1,
-                        help="commands: rounds of cold and warm runs (medians over them)")
+                        help="commands: rounds of cold and warm runs (medians over them); "
+                             "loops: rounds of the two children (at least 3)")
     parser.add_argument("--only",
                         choices=("imports", "commands", "calls", "again", "samples", "loops"),
                         help="one section alone")
     parser.add_argument("--loops-child", type=int, metavar="REPEATS", help=argparse.SUPPRESS)
     args = parser.parse_args()
-    if args.loops_child:
-        return _loops_child(args.loops_child)
+    if args.loops_child is not None:
+        return _loops_child(max(args.loops_child, 1))
     t0 = time.perf_counter()
     sections = {
         "imports": lambda: imports(3 if args.quick else 7),

@@ -83,9 +83,9 @@ def _runtime_message(error: RuntimeError) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     t_start = time.perf_counter()
-    from ._xla import prefer_fast_programs
+    from ._xla import add_settings
 
-    prefer_fast_programs()  # (before JAX starts: see `jaxdyn._xla`)
+    add_settings()  # (before JAX starts: see `jaxdyn._xla`)
     commands = _commands()
     args = _build_parser(commands, argv).parse_args(argv)
     args.t_start = t_start

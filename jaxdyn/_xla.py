@@ -1,7 +1,8 @@
 """XLA:CPU's compiler options for the `jaxdyn` command and the test suite.
 
 Two settings, each added to `XLA_FLAGS` (read when JAX starts its backend) unless the user's
-`XLA_FLAGS` already names it (`prefer_fast_programs`):
+`XLA_FLAGS` already sets that flag (`prefer_fast_programs`; a user's own
+`xla_backend_extra_options`, whatever they hold, are left as they are, not replaced):
 
 - **The earlier fusion emitters.** XLA:CPU emits each fusion by its MLIR-based fusion emitters
   by default; its earlier (LLVM IR) emitters compile jaxdyn's programs in about 0.6 of the
@@ -15,14 +16,12 @@ Two settings, each added to `XLA_FLAGS` (read when JAX starts its backend) unles
   touches a few KiB (its state, the solver's stages, a buffer of saved samples), so each of
   its steps launched dozens of kernels, most of the run's time. With the threshold at 64 KiB
   (`--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=65536`) the step
-  loop and the sample writer inside it are each one function, and the same runs took
-  (`jd.simulate` of the built-in scenes, 2-core machine, 8 Dec 2026, medians of 15 calls):
-  the falling rod 0.30 -> 0.21 ms, the torque-free body 0.65 -> 0.34 ms (with 500 saved
-  times 1.98 -> 0.65 ms), the reaction wheels 1.66 -> 0.47 ms, the thruster despin
-  20.5 -> 2.3 ms, the B-dot detumble 10.0 -> 2.1 ms. Compilation took as long, and ensembles
-  ran as fast (their batched loops touch more than the threshold). The arithmetic is the
-  same, compiled into one function instead of several (`tests/test_xla.py` compares a
-  command's results).
+  loop and the sample writer inside it are each one function: `jd.simulate` of the built-in
+  scenes ran 1.2-10.7x faster after compilation, their first calls (compiling) took
+  0.98-1.23x as long, and ensembles ran as fast (their batched loops touch more than the
+  threshold): `benchmarks/latency.py --only loops`, figures in the README's latency section.
+  The arithmetic is the same, compiled into one function instead of several
+  (`tests/test_xla.py` compares a command's results with XLA's defaults).
 
 In Python, `jd.prefer_fast_programs()` (this module's function) adds them when called first,
 before JAX starts its backend; or start Python with `XLA_FLAGS="--xla_cpu_use_fusion_emitters=false
@@ -31,8 +30,9 @@ jaxdyn changes a process-wide setting behind a user's back: only the command and
 suite call it themselves.
 
 XLA aborts the process on a flag it does not know, so a setting is added only where this
-jaxlib's XLA has it: its names are looked for in jaxlib's compiled libraries (one pass over
-them, a few milliseconds with the files in the page cache).
+jaxlib's XLA has it: its names are looked for in jaxlib's compiled libraries (each library
+mapped once and searched for each name: 15-20 ms for the three names, with the files in the
+page cache).
 
 The command's processes also load LAPACK for JAX without importing `scipy.linalg`
 (`lapack_without_scipy_linalg`): JAX's CPU kernels for LU, QR, Cholesky and the like take
@@ -91,38 +91,63 @@ def prefer_fast_programs() -> tuple[str, ...]:
     """Compile the programs of this process as the `jaxdyn` command compiles its own: XLA's
     earlier fusion emitters, and small loops compiled whole, so that a single run's step loop
     is one function instead of dozens of kernels launched per step (`jd.simulate` of the
-    built-in scenes 1.2-10x faster after compilation; the README's latency section).
+    built-in scenes 1.2-10.7x faster after compilation; the README's latency section).
 
-    Each setting is added to `XLA_FLAGS` unless `XLA_FLAGS` already names it, and only where
-    this jaxlib's XLA knows it (XLA aborts the process on a flag it does not know). XLA reads
-    `XLA_FLAGS` once, when JAX starts its backend (the first computation, not `import jax`),
-    and the settings hold for every program of the process, yours too: call this first, in a
-    notebook's first cell or at the top of a script. jaxdyn never calls it in your process.
+    Each setting is added to `XLA_FLAGS` unless `XLA_FLAGS` already sets its flag (your own
+    `--xla_backend_extra_options` are kept as they are, and the small-loop setting is then
+    not added), and only where this jaxlib's XLA knows it (XLA aborts the process on a flag
+    it does not know). XLA reads `XLA_FLAGS` once, when JAX starts its backend (the first
+    computation, not `import jax`), and the settings hold for every program of the process,
+    yours too: call this first, in a notebook's first cell or at the top of a script. jaxdyn
+    never calls it in your process.
 
     **Returns:**
 
-    The settings added (none where each is named already or unknown to this XLA).
+    The settings added (none where each is set already or unknown to this XLA).
 
     **Raises:**
 
     `RuntimeError` where a setting would be added but JAX has already started its backend
     (XLA would not read it): `XLA_FLAGS` is then left as it was.
     """
-    flags = os.environ.get("XLA_FLAGS", "")
-    wanted = [(setting, names) for chosen, setting, names in SETTINGS if chosen not in flags]
-    if not wanted:
-        return ()
-    missing = _missing({name for _, names in wanted for name in names})
-    added = tuple(setting for setting, names in wanted if not missing.intersection(names))
+    flags, added = _with_settings()
     if added and _backend_started():
         raise RuntimeError(
             "prefer_fast_programs: JAX has already started its backend, and XLA read XLA_FLAGS "
             "then; call it before JAX runs anything (first in the notebook or script, after "
-            "a restart of the kernel), or start Python with "
-            f"XLA_FLAGS=\"{' '.join(added)}\"")
+            f"a restart of the kernel), or start Python with XLA_FLAGS=\"{flags}\"")
     if added:
-        os.environ["XLA_FLAGS"] = " ".join([flags, *added]).strip()
+        os.environ["XLA_FLAGS"] = flags
     return added
+
+
+def add_settings() -> tuple[str, ...]:
+    """`prefer_fast_programs` for the command and the test suite, which call it before they
+    import JAX: the settings added to `XLA_FLAGS`, without looking at JAX's backend (where
+    the command is run from a process whose JAX has started, as `benchmarks/identify.py`
+    does, they then change nothing, as before)."""
+    flags, added = _with_settings()
+    if added:
+        os.environ["XLA_FLAGS"] = flags
+    return added
+
+
+def _with_settings() -> tuple[str, tuple[str, ...]]:
+    """`XLA_FLAGS` with the settings it does not set yet and this XLA knows, and those."""
+    flags = os.environ.get("XLA_FLAGS", "")
+    wanted = [(setting, names) for chosen, setting, names in SETTINGS
+              if not _sets(flags, chosen)]
+    if not wanted:
+        return flags, ()
+    missing = _missing({name for _, names in wanted for name in names})
+    added = tuple(setting for setting, names in wanted if not missing.intersection(names))
+    return " ".join([flags, *added]).strip(), added
+
+
+def _sets(flags: str, name: str) -> bool:
+    """Whether the flags `flags` (as in `XLA_FLAGS`) set the flag `name`."""
+    return any(token == f"--{name}" or token.startswith(f"--{name}=")
+               for token in flags.split())
 
 
 def _backend_started() -> bool:

@@ -10,7 +10,7 @@ import pytest
 # this XLA has it, unless XLA_FLAGS names it): the emitters halve the suite's compilation
 # (1034 s -> 528 s of XLA time in the workers, 1091 s -> 772 s of wall time on 2 cores,
 # 28 Nov 2026) and run the programs as fast; a single run's step loop, compiled whole, runs
-# 1.4-9x faster. Then any of JAXDYN_TEST_XLA_FLAGS, added to them.
+# 1.2-10.7x faster. Then any of JAXDYN_TEST_XLA_FLAGS, added to them.
 #
 # Most tests spend their time in XLA compiling programs that then run for milliseconds, so XLA
 # compiles them with most optimisations off (JAX's `jax_disable_most_optimizations`: LLVM at
@@ -23,9 +23,9 @@ import pytest
 # Fresh-cache runs of the suite on 2 cores, one after the other (6 Dec 2026): 613-642 s with
 # every test optimised, 562 s with none (six comparisons failing), 504 s so.
 os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
-from jaxdyn._xla import prefer_fast_programs  # noqa: E402
+from jaxdyn._xla import add_settings  # noqa: E402
 
-prefer_fast_programs()
+add_settings()
 if os.environ.get("JAXDYN_TEST_XLA_FLAGS"):
     os.environ["XLA_FLAGS"] = " ".join(
         filter(None, (os.environ.get("XLA_FLAGS", ""), os.environ["JAXDYN_TEST_XLA_FLAGS"])))
