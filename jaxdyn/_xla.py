@@ -56,14 +56,15 @@ EXTRA = "xla_backend_extra_options"
 LOOP_OPTION = "xla_cpu_small_while_loop_byte_threshold"
 LOOP_BYTES = 65536
 LOOP_SETTING = f"--{EXTRA}={LOOP_OPTION}={LOOP_BYTES}"
-# (the name that says the user chose, in `XLA_FLAGS`; the setting; the names XLA must know)
-SETTINGS = ((FLAG, SETTING, (FLAG,)), (EXTRA, LOOP_SETTING, (EXTRA, LOOP_OPTION)))
+# (the setting; the names XLA must know, the first that of its flag: where `XLA_FLAGS`
+# sets that flag, the user chose)
+SETTINGS = ((SETTING, (FLAG,)), (LOOP_SETTING, (EXTRA, LOOP_OPTION)))
 _SUFFIXES = (".so", ".pyd", ".dll", ".dylib")
 
 
 def known(*flags: str) -> bool:
     """Whether the installed jaxlib's XLA defines every one of `flags` (their names in
-    jaxlib's libraries, looked for in one pass over them)."""
+    jaxlib's libraries, each library mapped once)."""
     return not _missing(flags)
 
 
@@ -110,15 +111,7 @@ def prefer_fast_programs() -> tuple[str, ...]:
     `RuntimeError` where a setting would be added but JAX has already started its backend
     (XLA would not read it): `XLA_FLAGS` is then left as it was.
     """
-    flags, added = _with_settings()
-    if added and _backend_started():
-        raise RuntimeError(
-            "prefer_fast_programs: JAX has already started its backend, and XLA read XLA_FLAGS "
-            "then; call it before JAX runs anything (first in the notebook or script, after "
-            f"a restart of the kernel), or start Python with XLA_FLAGS=\"{flags}\"")
-    if added:
-        os.environ["XLA_FLAGS"] = flags
-    return added
+    return _add(refuse_late=True)
 
 
 def add_settings() -> tuple[str, ...]:
@@ -126,22 +119,28 @@ def add_settings() -> tuple[str, ...]:
     import JAX: the settings added to `XLA_FLAGS`, without looking at JAX's backend (where
     the command is run from a process whose JAX has started, as `benchmarks/identify.py`
     does, they then change nothing, as before)."""
-    flags, added = _with_settings()
-    if added:
-        os.environ["XLA_FLAGS"] = flags
-    return added
+    return _add(refuse_late=False)
 
 
-def _with_settings() -> tuple[str, tuple[str, ...]]:
-    """`XLA_FLAGS` with the settings it does not set yet and this XLA knows, and those."""
+def _add(refuse_late: bool) -> tuple[str, ...]:
+    """Add to `XLA_FLAGS` the settings it does not set yet and this XLA knows; return them.
+    `refuse_late`: raise instead where JAX's backend has started (`prefer_fast_programs`)."""
     flags = os.environ.get("XLA_FLAGS", "")
-    wanted = [(setting, names) for chosen, setting, names in SETTINGS
-              if not _sets(flags, chosen)]
+    wanted = [(setting, names) for setting, names in SETTINGS if not _sets(flags, names[0])]
     if not wanted:
-        return flags, ()
+        return ()
     missing = _missing({name for _, names in wanted for name in names})
     added = tuple(setting for setting, names in wanted if not missing.intersection(names))
-    return " ".join([flags, *added]).strip(), added
+    if not added:
+        return ()
+    flags = " ".join([flags, *added]).strip()
+    if refuse_late and _backend_started():
+        raise RuntimeError(
+            "prefer_fast_programs: JAX has already started its backend, and XLA read XLA_FLAGS "
+            "then; call it before JAX runs anything (first in the notebook or script, after "
+            f"a restart of the kernel), or start Python with XLA_FLAGS=\"{flags}\"")
+    os.environ["XLA_FLAGS"] = flags
+    return added
 
 
 def _sets(flags: str, name: str) -> bool:

@@ -37,7 +37,7 @@ def test_the_users_choice_is_kept(monkeypatch, before_jax_starts):
     # Each setting is left out where the user's flags name it; the other is still added.
     for value in ("--xla_cpu_use_fusion_emitters=true", "--xla_cpu_use_fusion_emitters"):
         monkeypatch.setenv("XLA_FLAGS", value)
-        loops = _knows(_xla.SETTINGS[1][2])
+        loops = _knows(_xla.SETTINGS[1][1])
         assert _xla.prefer_fast_programs() == ((_xla.LOOP_SETTING,) if loops else ())
         assert os.environ["XLA_FLAGS"] == value + (f" {_xla.LOOP_SETTING}" if loops else "")
     mine = "--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=512"
@@ -50,7 +50,7 @@ def test_the_users_choice_is_kept(monkeypatch, before_jax_starts):
 
 
 def test_added_where_known_and_the_users_other_flags_kept(monkeypatch, before_jax_starts):
-    expected = tuple(setting for _, setting, names in _xla.SETTINGS if _knows(names))
+    expected = tuple(setting for setting, names in _xla.SETTINGS if _knows(names))
     monkeypatch.setenv("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
     assert _xla.prefer_fast_programs() == expected
     assert os.environ["XLA_FLAGS"] == " ".join(["--xla_force_host_platform_device_count=2",
@@ -63,8 +63,7 @@ def test_added_where_known_and_the_users_other_flags_kept(monkeypatch, before_ja
 
 def test_an_unknown_setting_is_not_added(monkeypatch, before_jax_starts):
     monkeypatch.setattr(_xla, "SETTINGS", (*_xla.SETTINGS, (
-        "xla_cpu_no_such_flag_in_any_xla", "--xla_cpu_no_such_flag_in_any_xla=1",
-        ("xla_cpu_no_such_flag_in_any_xla",))))
+        "--xla_cpu_no_such_flag_in_any_xla=1", ("xla_cpu_no_such_flag_in_any_xla",))))
     monkeypatch.delenv("XLA_FLAGS", raising=False)
     assert "--xla_cpu_no_such_flag_in_any_xla=1" not in _xla.prefer_fast_programs()
     assert "no_such_flag" not in os.environ.get("XLA_FLAGS", "")
@@ -74,7 +73,7 @@ def test_a_flag_is_set_only_by_its_own_name(monkeypatch, before_jax_starts):
     # A path or a value that contains a flag's name does not set it.
     mine = "--xla_dump_to=/tmp/xla_backend_extra_options_and_xla_cpu_use_fusion_emitters"
     monkeypatch.setenv("XLA_FLAGS", mine)
-    expected = tuple(setting for _, setting, names in _xla.SETTINGS if _knows(names))
+    expected = tuple(setting for setting, names in _xla.SETTINGS if _knows(names))
     assert _xla.prefer_fast_programs() == expected
     assert os.environ["XLA_FLAGS"] == " ".join([mine, *expected])
 
@@ -89,13 +88,13 @@ def test_too_late_once_jax_has_started(monkeypatch):
     assert _xla._backend_started()
     mine = "--xla_force_host_platform_device_count=1"
     monkeypatch.setenv("XLA_FLAGS", mine)
-    expected = tuple(setting for _, setting, names in _xla.SETTINGS if _knows(names))
+    expected = tuple(setting for setting, names in _xla.SETTINGS if _knows(names))
     assert expected, "this XLA knows neither setting"
     with pytest.raises(RuntimeError, match="before JAX runs anything") as raised:
         jd.prefer_fast_programs()
     assert " ".join([mine, *expected]) in str(raised.value)
     assert os.environ["XLA_FLAGS"] == mine
-    monkeypatch.setenv("XLA_FLAGS", " ".join(s for _, s, _ in _xla.SETTINGS))
+    monkeypatch.setenv("XLA_FLAGS", " ".join(s for s, _ in _xla.SETTINGS))
     assert jd.prefer_fast_programs() == ()
     # The command's own call adds them without asking (as before this check: a command run
     # from a process whose JAX has started, as benchmarks/identify.py runs `fit`, is not
