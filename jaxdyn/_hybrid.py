@@ -231,8 +231,6 @@ class _Run:
         # Sample times saved from each accepted step (`Samples`): `SaveAt(ts)` of traced times
         # carries diffrax's runtime check of them, a host callback.
         self.sampled = solver_saves and ts is not None
-        if self.sampled:
-            self.ts_padded = Samples.pad(ts)
         kind = next((k for a, k in _STAGE_LOOPS.items() if isinstance(adjoint, a)), None)
         if kind is not None and getattr(solver, "scan_kind", "") is None \
                 and isinstance(solver, (dfx.AbstractRungeKutta, dfx.AbstractSRK)):
@@ -257,8 +255,7 @@ class _Run:
              "steps": zero, "accepted": zero, "rejected": zero,
              "result": dfx.RESULTS.successful}
         if self.sampled:  # one buffer for the whole run, written in place (`Samples`)
-            c["ys"], index = Samples(self.ts_padded).start(self.t0, y)
-            c["index"] = jnp.where(stop, 0, index)  # (a run that ends at once saves nothing)
+            c["samples"] = Samples(self.ts).start(self.t0, y, stop)
         elif self.ts is not None:
             c["ts_taken"] = jnp.zeros(self.ts.shape, bool)
             c["ys"] = jax.tree.map(lambda a: jnp.zeros(self.ts.shape + a.shape, a.dtype), y)
@@ -293,7 +290,7 @@ class _Run:
         writers = {}
         subs = [dfx.SubSaveAt(t1=True)]
         if self.sampled:
-            writers["samples"] = Samples(times(self.ts_padded), c["ys"], c["index"])
+            writers["samples"] = Samples(self.ts, unit, c["samples"])
         elif ts is not None:
             subs.insert(0, dfx.SubSaveAt(ts=times(jnp.clip(ts, t_s, t_stop))))
         if self.record:
@@ -369,10 +366,8 @@ class _Run:
         new["result"] = dfx.RESULTS.where(live & ~ok, sol.result, c["result"])
         if self.sampled:
             # Samples past the end, written from the last step (past an event), are not kept:
-            # the next segment writes over them.
-            new["ys"], reached = saved
-            end = jnp.searchsorted(self.ts, t_e, side="right").astype(reached.dtype)
-            new["index"] = jnp.minimum(reached, end)
+            # the next segment writes them.
+            new["samples"] = Samples(self.ts).keep_until(saved, t_e)
         elif self.ts is not None:
             take = live & ~c["ts_taken"] & (self.ts <= t_e)
             new["ts_taken"] = c["ts_taken"] | take
@@ -437,13 +432,12 @@ class _Run:
             ts_out = jnp.stack([self.t0, t_final])
             ys_out = jax.tree.map(lambda a, b: jnp.stack([a, b]), y_start, y_final)
         else:
-            if self.sampled:  # (its buffer has `BLOCK` rows of padding)
-                taken = jnp.arange(self.ts.size) < c["index"]
-                ys = jax.tree.map(lambda a: a[:self.ts.size], c["ys"])
+            if self.sampled:  # (`inf` where not reached, as diffrax's)
+                ys_out, ts_out, _ = c["samples"]
             else:
                 taken, ys = c["ts_taken"], c["ys"]
-            ts_out = jnp.where(taken, self.ts, jnp.inf)
-            ys_out = jax.tree.map(lambda a: jnp.where(_expand(taken, a), a, jnp.inf), ys)
+                ts_out = jnp.where(taken, self.ts, jnp.inf)
+                ys_out = jax.tree.map(lambda a: jnp.where(_expand(taken, a), a, jnp.inf), ys)
         stats = {"num_steps": c["steps"], "num_accepted_steps": c["accepted"],
                  "num_rejected_steps": c["rejected"], "max_steps": self.max_steps}
         if self.segments > 1:

@@ -8,6 +8,16 @@ refuses programs that hold one. `Samples` is a writer (`_accepted.Writing`) that
 state at each sample time from the same local interpolant of each accepted step from which
 diffrax saves `SaveAt(ts)`, so the states saved are those that `SaveAt(ts)` would give, and the
 times are checked on the host by the caller.
+
+**Nothing the size of `ts` outside a loop.** Every operation over the samples (filling the
+samples at the start, writing them, taking back those written past the end of a segment) is a
+loop over the samples concerned, one sample per iteration, as diffrax's own `SaveAt(ts)` loop;
+the buffers start as constants. XLA's cost estimate of a program counts a loop's body once, and
+XLA:CPU runs a program whose estimate is under 1000 operations on the calling thread, others on
+a worker thread that wakes the caller when done (about 150 us more per call here, more than a
+free body's whole run): a run that saves 200 or 10^5 samples stays as cheap to start as one
+that saves its end. (Elementwise operations over `ts` cost about 16 operations a sample: 200
+samples put the free body's program at 5400.)
 """
 
 from typing import Any
@@ -17,66 +27,67 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-BLOCK = 16
-"""Samples written together, from one evaluation of the interpolant at `BLOCK` times: a loop
-iteration a sample costs more than the evaluation (several microseconds for a state of many
-leaves)."""
-
 
 class Samples(eqx.Module):
-    """Saves the state at the increasing times `ts` (a run forwards in time) into `ys`, from
+    """Saves the state at the increasing times `ts` (a run forwards in time) into buffers, from
     the sample `index` on.
 
     For runs that are not reverse-mode differentiated (its loop over the times in a step has a
     dynamic trip count): concrete runs, and forward-mode Jacobians.
 
-    `ts` is padded with `BLOCK` infinite times (`pad`), `ys` with as many rows, so that a block
-    of samples is written in place wherever it starts. Its state is `(ys, index)`: `ys` holds
-    the state at each of `ts` (`inf` where not yet reached, as diffrax fills `SaveAt(ts)`),
-    `index` the number of times saved. `ys` and `index` are carried from segment to segment of
-    a run: `start` makes them at its start.
+    Its state is `(ys, ts_saved, index)`: `ys` holds the state at each of `ts` (`inf` where not
+    yet reached, as diffrax fills `SaveAt(ts)`), `ts_saved` the times saved (`inf` likewise),
+    `index` the number of times saved. They are carried from segment to segment of a run:
+    `start` makes them at its start, `keep_until` takes back those past a segment's end. `unit`
+    maps the run's times to the solver's (`None`: the same).
     """
 
-    ts: Float[Array, " times+BLOCK"]
-    ys: Any = None
-    index: Any = None
+    ts: Float[Array, " times"]
+    unit: Any = None
+    state: Any = None
 
-    @staticmethod
-    def pad(ts):
-        return jnp.concatenate([ts, jnp.full(BLOCK, jnp.inf, ts.dtype)])
+    def _tau(self, t):
+        return t if self.unit is None else self.unit.tau(t)
 
-    def start(self, t0, y0):
-        """The buffer and count at the start of a run: the initial state at times up to it."""
-        reached = self.ts <= t0
-        ys = jax.tree.map(
-            lambda y: jnp.where(_rows(reached, jnp.ndim(y)), y,
-                                jnp.full((self.ts.size,) + jnp.shape(y), jnp.inf, y.dtype)),
-            y0)
-        return ys, jnp.sum(reached)
+    def start(self, t0, y0, stop):
+        """The buffers at the start of a run: the initial state at the times up to `t0`
+        (none where the run ends at once, `stop`)."""
+        n = self.ts.size
+        ys = jax.tree.map(lambda y: jnp.full((n,) + jnp.shape(y), jnp.inf, y.dtype), y0)
+        state = ys, jnp.full(n, jnp.inf, self.ts.dtype), jnp.asarray(0)
+        return jax.lax.while_loop(
+            lambda c: ~stop & (c[2] < n) & (self.ts[jnp.minimum(c[2], n - 1)] <= t0),
+            lambda c: self._put(c, lambda _: y0), state)
 
     def init(self, t0, y0):
-        return self.ys, self.index
+        return self.state
 
     def write(self, state, t0, t1, dense_info, interpolation, keep):
-        def pending(carry):
-            return keep & (self.ts[carry[1]] <= t1)
+        n = self.ts.size
 
-        def save(carry):
-            ys, i = carry
-            times = jax.lax.dynamic_slice_in_dim(self.ts, i, BLOCK)
-            now = times <= t1  # a prefix: the block's samples within this step
-            y = jax.vmap(interpolation.evaluate)(jnp.where(now, times, t1))
+        def pending(c):
+            return keep & (c[2] < n) & (self._tau(self.ts[jnp.minimum(c[2], n - 1)]) <= t1)
 
-            def put(a, b):  # in place; the rows past this step keep what they hold
-                old = jax.lax.dynamic_slice_in_dim(a, i, BLOCK)
-                new = jnp.where(_rows(now, b.ndim - 1), b, old)
-                return jax.lax.dynamic_update_slice_in_dim(a, new, i, 0)
+        return jax.lax.while_loop(
+            pending, lambda c: self._put(c, lambda t: interpolation.evaluate(self._tau(t))),
+            state)
 
-            return jax.tree.map(put, ys, y), i + jnp.sum(now)
+    def keep_until(self, state, t_end):
+        """`state` without the samples after `t_end` (written from the last step of a segment
+        that an event ended inside it): their rows back to `inf`, for the next segment to
+        write."""
+        def drop(c):
+            ys, ts_saved, i = c
+            i = i - 1
+            ys = jax.tree.map(lambda a: a.at[i].set(jnp.inf), ys)
+            return ys, ts_saved.at[i].set(jnp.inf), i
 
-        return jax.lax.while_loop(pending, save, state)
+        return jax.lax.while_loop(
+            lambda c: (c[2] > 0) & (self.ts[jnp.maximum(c[2] - 1, 0)] > t_end), drop, state)
 
-
-def _rows(mask, trailing):
-    """`mask` over rows, with `trailing` axes to broadcast."""
-    return mask.reshape(mask.shape + (1,) * trailing)
+    def _put(self, state, value):
+        """`state` with the sample `index` saved as `value(its time)`."""
+        ys, ts_saved, i = state
+        t = self.ts[i]
+        ys = jax.tree.map(lambda a, b: a.at[i].set(b), ys, value(t))
+        return ys, ts_saved.at[i].set(t), i + 1
