@@ -48,9 +48,10 @@
   child's compile time of its first calls.
 
 - **Targets**: issue 19's targets that the sections run measured, each with its value, its
-  bound and whether it is met (`targets`): `simulate` and derived outputs against their
-  references, the warm `jaxdyn run` against importing what it needs (`import jaxdyn` itself
-  loads its names on first use, so the bound is the import of the integration stack), the
+  bound and whether it is met (`targets`): `simulate` (start and end; and with 1e2, 1e3 and
+  1e4 saved times) and derived outputs against their references, the warm `jaxdyn run`
+  against importing what it needs (`import jaxdyn` itself loads its names on first use, so
+  the bound is the import of the integration stack), the
   warm `jaxdyn fit` under 3 s, `import jaxdyn` against `import jax`, and with `--baseline`
   each cold command against the code before. All ratios come from this one run.
 
@@ -647,6 +648,11 @@ def targets(result: dict) -> dict:
                    calls[problem]["simulate_over_hand"], 1.5)
             target(f"derived_output_over_program_{problem}",
                    calls[problem]["output_over_program"], 2.0)
+    samples = result.get("samples", {})
+    for n in ("100", "1000", "10000"):  # (the call with saved times, XLA's defaults)
+        if n in samples:
+            target(f"simulate_{n}_samples_over_hand_saveat",
+                   samples[n]["simulate_over_hand_saveat"], 1.5)
     for name, row in result.get("again", {}).items():
         target(f"traces_on_second_call_{name}", row["traces"], 0)
         target(f"programs_made_or_read_on_second_call_{name}",

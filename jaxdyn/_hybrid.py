@@ -254,7 +254,7 @@ class _Run:
         c = {"t": self.t0, "y": y, "done": stop, "ended_by": ended_by, "switches": zero,
              "steps": zero, "accepted": zero, "rejected": zero,
              "result": dfx.RESULTS.successful}
-        if self.sampled:  # one buffer for the whole run, written in place (`Samples`)
+        if self.sampled:  # buffers for the whole run, written in place (`Samples`)
             c["samples"] = Samples(self.ts).start(self.t0, y, stop)
         elif self.ts is not None:
             c["ts_taken"] = jnp.zeros(self.ts.shape, bool)
@@ -269,7 +269,7 @@ class _Run:
 
     def solve(self, c, t_stop):
         """`diffrax.diffeqsolve` over one segment from the carry's time and state; the segment's
-        end, its samples (`Samples`' buffer and count, or diffrax's), its dense table."""
+        end, its samples (`Samples`' buffers and count, or diffrax's), its dense table."""
         t_s, y_s, ts = c["t"], c["y"], self.ts
         solver, controller, term, dt0 = self.solver, self.controller, self.term, self.dt0
         # (The ends as values of the run, never folded into constants, as the tolerances in

@@ -14,15 +14,17 @@ samples at the start, writing them, taking back those written past the end of a 
 loop over the samples concerned, one sample per iteration, as diffrax's own `SaveAt(ts)` loop;
 the buffers start as constants. XLA's cost estimate of a program counts a loop's body once, and
 XLA:CPU runs a program whose estimate is under 1000 operations on the calling thread, others on
-a worker thread that wakes the caller when done (about 150 us more per call here, more than a
-free body's whole run): a run that saves 200 or 10^5 samples stays as cheap to start as one
-that saves its end. (Elementwise operations over `ts` cost about 16 operations a sample: 200
-samples put the free body's program at 5400.)
+a worker thread that wakes the caller when done (see `_hybrid`): the free body's program is
+estimated at 667 operations whatever the number of samples. (Elementwise operations over `ts`
+cost about 16 operations a sample, and a block of 16 interpolations 1600: 201 samples put it
+at 5439. A call saving 201 times took 1.4-1.6 ms against 1.3-1.7 ms now with XLA's defaults,
+520 us against 320-440 us with the command's settings; s45 in `benchmarks/latency-log.md`.)
 """
 
 from typing import Any
 
 import equinox as eqx
+import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
@@ -55,9 +57,8 @@ class Samples(eqx.Module):
         n = self.ts.size
         ys = jax.tree.map(lambda y: jnp.full((n,) + jnp.shape(y), jnp.inf, y.dtype), y0)
         state = ys, jnp.full(n, jnp.inf, self.ts.dtype), jnp.asarray(0)
-        return jax.lax.while_loop(
-            lambda c: ~stop & (c[2] < n) & (self.ts[jnp.minimum(c[2], n - 1)] <= t0),
-            lambda c: self._put(c, lambda _: y0), state)
+        return _loop(lambda c: ~stop & (c[2] < n) & (self.ts[jnp.minimum(c[2], n - 1)] <= t0),
+                     lambda c: self._put(c, lambda _: y0), state)
 
     def init(self, t0, y0):
         return self.state
@@ -68,26 +69,37 @@ class Samples(eqx.Module):
         def pending(c):
             return keep & (c[2] < n) & (self._tau(self.ts[jnp.minimum(c[2], n - 1)]) <= t1)
 
-        return jax.lax.while_loop(
-            pending, lambda c: self._put(c, lambda t: interpolation.evaluate(self._tau(t))),
-            state)
+        return _loop(pending,
+                     lambda c: self._put(c, lambda t: interpolation.evaluate(self._tau(t))),
+                     state)
 
     def keep_until(self, state, t_end):
         """`state` without the samples after `t_end` (written from the last step of a segment
         that an event ended inside it): their rows back to `inf`, for the next segment to
         write."""
+        blank = jax.tree.map(lambda a: jnp.full(a.shape[1:], jnp.inf, a.dtype), state[0])
+
         def drop(c):
             ys, ts_saved, i = c
             i = i - 1
-            ys = jax.tree.map(lambda a: a.at[i].set(jnp.inf), ys)
+            ys = jax.tree.map(lambda b, a: a.at[i].set(b), blank, ys)
             return ys, ts_saved.at[i].set(jnp.inf), i
 
-        return jax.lax.while_loop(
-            lambda c: (c[2] > 0) & (self.ts[jnp.maximum(c[2] - 1, 0)] > t_end), drop, state)
+        return _loop(lambda c: (c[2] > 0) & (self.ts[jnp.maximum(c[2] - 1, 0)] > t_end),
+                     drop, state)
 
     def _put(self, state, value):
         """`state` with the sample `index` saved as `value(its time)`."""
         ys, ts_saved, i = state
         t = self.ts[i]
-        ys = jax.tree.map(lambda a, b: a.at[i].set(b), ys, value(t))
+        ys = jax.tree.map(lambda b, a: a.at[i].set(b), value(t), ys)
         return ys, ts_saved.at[i].set(t), i + 1
+
+
+def _loop(cond, body, state):
+    """`lax.while_loop` over a state `(ys, ts_saved, index)` whose buffers are written one row
+    per iteration (equinox's loop with `buffers`, as diffrax's `SaveAt(ts)` loop): under
+    `vmap`, a row is written where the member's loop goes on, not the whole buffer selected
+    between the old and the new at every iteration (`O(rows)` an iteration: 8 forward-mode
+    Jacobians of a free body saving 2000 times took 289 ms so, 44 ms now)."""
+    return eqxi.while_loop(cond, body, state, buffers=lambda c: (c[0], c[1]), kind="lax")
