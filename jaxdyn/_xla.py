@@ -17,9 +17,10 @@ Two settings, each added to `XLA_FLAGS` (read when JAX starts its backend) unles
   its steps launched dozens of kernels, most of the run's time. With the threshold at 64 KiB
   (`--xla_backend_extra_options=xla_cpu_small_while_loop_byte_threshold=65536`) the step
   loop and the sample writer inside it are each one function: `jd.simulate` of the built-in
-  scenes ran 1.2-10.7x faster after compilation, their first calls (compiling) took
-  0.98-1.23x as long, and ensembles ran as fast (their batched loops touch more than the
-  threshold): `benchmarks/latency.py --only loops`, figures in the README's latency section.
+  scenes ran 1.1-12x faster after compilation, their first calls (compiling) took 0.71-1.23x
+  as long (s44's and s45's runs), and ensembles ran as fast (their batched loops touch more
+  than the threshold): `benchmarks/latency.py --only loops`; the figures of the latest run in
+  the README's latency section, earlier ones in `benchmarks/latency-log.md`.
   The arithmetic is the same, compiled into one function instead of several
   (`tests/test_xla.py` compares a command's results with XLA's defaults).
 
@@ -92,7 +93,7 @@ def prefer_fast_programs() -> tuple[str, ...]:
     """Compile the programs of this process as the `jaxdyn` command compiles its own: XLA's
     earlier fusion emitters, and small loops compiled whole, so that a single run's step loop
     is one function instead of dozens of kernels launched per step (`jd.simulate` of the
-    built-in scenes 1.2-10.7x faster after compilation; the README's latency section).
+    built-in scenes 1.1-12x faster after compilation; the README's latency section).
 
     Each setting is added to `XLA_FLAGS` unless `XLA_FLAGS` already sets its flag (your own
     `--xla_backend_extra_options` are kept as they are, and the small-loop setting is then

@@ -17,8 +17,9 @@ XLA:CPU runs a program whose estimate is under 1000 operations on the calling th
 a worker thread that wakes the caller when done (see `_hybrid`): the free body's program is
 estimated at 667 operations whatever the number of samples. (Elementwise operations over `ts`
 cost about 16 operations a sample, and a block of 16 interpolations 1600: 201 samples put it
-at 5439. A call saving 201 times took 1.4-1.6 ms against 1.3-1.7 ms now with XLA's defaults,
-520 us against 320-440 us with the command's settings; s45 in `benchmarks/latency-log.md`.)
+at 5439. A call saving 201 times took 1.4-1.6 ms before against 1.3-1.7 ms after with XLA's
+defaults, 520 us against 320-440 us with the command's settings, measured at 3620514, the
+first form of this loop; s45 in `benchmarks/latency-log.md`.)
 """
 
 from typing import Any
@@ -101,5 +102,8 @@ def _loop(cond, body, state):
     per iteration (equinox's loop with `buffers`, as diffrax's `SaveAt(ts)` loop): under
     `vmap`, a row is written where the member's loop goes on, not the whole buffer selected
     between the old and the new at every iteration (`O(rows)` an iteration: 8 forward-mode
-    Jacobians of a free body saving 2000 times took 289 ms so, 44 ms now)."""
+    Jacobians of a free body saving 2000 times took 289 ms so, 44.5 ms now). A row may be
+    written again by a later loop (`keep_until`, then the next segment): safe for
+    `kind="lax"`, which is not reverse-mode differentiated; equinox's other kinds assume each
+    row written once."""
     return eqxi.while_loop(cond, body, state, buffers=lambda c: (c[0], c[1]), kind="lax")
