@@ -10,7 +10,8 @@ import pytest
 # this XLA has it, unless XLA_FLAGS names it): the emitters halve the suite's compilation
 # (1034 s -> 528 s of XLA time in the workers, 1091 s -> 772 s of wall time on 2 cores,
 # 28 Nov 2026) and run the programs as fast; a single run's step loop, compiled whole, runs
-# 1.2-10.7x faster. Then any of JAXDYN_TEST_XLA_FLAGS, added to them.
+# 1.1-12x faster (`benchmarks/latency.py --only loops`, s44 and s45). Then any of
+# JAXDYN_TEST_XLA_FLAGS, added to them.
 #
 # Most tests spend their time in XLA compiling programs that then run for milliseconds, so XLA
 # compiles them with most optimisations off (JAX's `jax_disable_most_optimizations`: LLVM at

@@ -58,19 +58,14 @@ class Samples(eqx.Module):
         n = self.ts.size
         ys = jax.tree.map(lambda y: jnp.full((n,) + jnp.shape(y), jnp.inf, y.dtype), y0)
         state = ys, jnp.full(n, jnp.inf, self.ts.dtype), jnp.asarray(0)
-        return _loop(lambda c: ~stop & (c[2] < n) & (self.ts[jnp.minimum(c[2], n - 1)] <= t0),
+        return _loop(lambda c: ~stop & self._due(c, lambda t: t <= t0),
                      lambda c: self._put(c, lambda _: y0), state)
 
     def init(self, t0, y0):
         return self.state
 
     def write(self, state, t0, t1, dense_info, interpolation, keep):
-        n = self.ts.size
-
-        def pending(c):
-            return keep & (c[2] < n) & (self._tau(self.ts[jnp.minimum(c[2], n - 1)]) <= t1)
-
-        return _loop(pending,
+        return _loop(lambda c: keep & self._due(c, lambda t: self._tau(t) <= t1),
                      lambda c: self._put(c, lambda t: interpolation.evaluate(self._tau(t))),
                      state)
 
@@ -88,6 +83,11 @@ class Samples(eqx.Module):
 
         return _loop(lambda c: (c[2] > 0) & (self.ts[jnp.maximum(c[2] - 1, 0)] > t_end),
                      drop, state)
+
+    def _due(self, state, within):
+        """Whether a sample remains to be saved and its time is `within(time)`."""
+        i, n = state[2], self.ts.size
+        return (i < n) & within(self.ts[jnp.minimum(i, n - 1)])
 
     def _put(self, state, value):
         """`state` with the sample `index` saved as `value(its time)`."""
